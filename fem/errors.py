@@ -1,0 +1,13 @@
+"""The one error type the engine raises for bad input.
+
+The command line turns a `FemError` into a single `error: ...` line on stderr
+and exit code 2; anything else is a bug and keeps its traceback.
+"""
+
+
+class FemError(Exception):
+    """Bad input: a file, a scene key or a parameter the engine cannot use.
+
+    The message names the file (and line, where there is one) and says what is
+    wrong, e.g. ``scenes/x.toml: body[0].material.E must be > 0, got -1``.
+    """
