@@ -1,0 +1,1 @@
+"""App layer: renderers, camera and overlays that read the engine's state."""

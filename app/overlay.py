@@ -1,0 +1,116 @@
+"""Colours for vertices, and text and legends drawn onto finished images.
+
+Text is drawn with Pillow into the image itself because GGUI's widgets do not
+appear in offscreen images, and the software renderer has none.
+"""
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+# Distinct, soft colours for telling bodies apart (RGB in [0, 1]).
+BODY_PALETTE = np.array([
+    [0.91, 0.49, 0.36],  # coral
+    [0.36, 0.61, 0.84],  # blue
+    [0.52, 0.75, 0.42],  # green
+    [0.96, 0.76, 0.33],  # amber
+    [0.67, 0.52, 0.82],  # violet
+    [0.36, 0.77, 0.75],  # teal
+    [0.91, 0.55, 0.71],  # pink
+    [0.72, 0.60, 0.45],  # tan
+])
+
+# Colour maps as evenly spaced control points from the low end to the high end.
+COLORMAPS = {
+    # Moreland's cool-warm: blue below, light grey at the middle, red above.
+    "coolwarm": np.array([
+        [0.230, 0.299, 0.754], [0.554, 0.690, 0.996], [0.865, 0.865, 0.865],
+        [0.958, 0.603, 0.482], [0.706, 0.016, 0.150],
+    ]),
+    # Perceptually uniform dark-blue-to-yellow, for magnitudes such as stress.
+    "viridis": np.array([
+        [0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567, 0.551],
+        [0.369, 0.789, 0.383], [0.993, 0.906, 0.144],
+    ]),
+}
+
+TEXT_COLOR = (255, 255, 255, 255)
+PANEL_COLOR = (20, 24, 32, 150)  # translucent dark, readable over any scene
+
+
+def body_colors(body_index) -> np.ndarray:
+    """Colours (n, 3) in [0, 1]: vertex i gets the palette colour of body body_index[i]."""
+    return BODY_PALETTE[np.asarray(body_index) % len(BODY_PALETTE)]
+
+
+def scalar_colors(values, vmin: float, vmax: float, colormap: str = "coolwarm") -> np.ndarray:
+    """Colours (n, 3) in [0, 1] for values (n,), vmin at the low end of the map
+    and vmax at the high end; values outside are clamped.
+
+    For volume change J = det(F), use vmin, vmax symmetric about 1 with
+    "coolwarm": compressed is blue, unchanged grey, stretched red.
+    """
+    stops = COLORMAPS[colormap]
+    t = np.clip((np.asarray(values, dtype=np.float64) - vmin) / (vmax - vmin), 0.0, 1.0)
+    positions = np.linspace(0.0, 1.0, len(stops))
+    return np.stack([np.interp(t, positions, stops[:, k]) for k in range(3)], axis=1)
+
+
+def _font(image_height: int) -> ImageFont.FreeTypeFont:
+    return ImageFont.load_default(size=max(11, image_height // 32))
+
+
+def _corner_origin(corner: str, box_size, image_size, margin: int):
+    """Top-left pixel of a box of box_size (w, h) placed in a corner of the image."""
+    vertical, horizontal = corner.split("-")
+    x = margin if horizontal == "left" else image_size[0] - box_size[0] - margin
+    y = margin if vertical == "top" else image_size[1] - box_size[1] - margin
+    return x, y
+
+
+def draw_text_overlay(image: np.ndarray, lines: list[str], corner: str = "top-left") -> np.ndarray:
+    """A copy of image (H, W, 3) uint8 with lines of text on a translucent panel.
+
+    corner: "top-left", "top-right", "bottom-left" or "bottom-right".
+    """
+    canvas = Image.fromarray(image).convert("RGBA")
+    layer = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(layer)
+    font = _font(canvas.height)
+    line_height = round(font.size * 1.35)
+    padding = font.size // 2
+    text_width = max((draw.textlength(line, font=font) for line in lines), default=0)
+    box = (round(text_width) + 2 * padding, line_height * len(lines) + 2 * padding)
+    x, y = _corner_origin(corner, box, canvas.size, margin=padding)
+    draw.rounded_rectangle([x, y, x + box[0], y + box[1]], radius=padding, fill=PANEL_COLOR)
+    for row, line in enumerate(lines):
+        draw.text((x + padding, y + padding + row * line_height), line, font=font, fill=TEXT_COLOR)
+    return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
+
+
+def draw_legend(image: np.ndarray, title: str, vmin: float, vmax: float,
+                colormap: str = "coolwarm", corner: str = "bottom-right") -> np.ndarray:
+    """A copy of image (H, W, 3) uint8 with a colour bar: title above, the map
+    from vmin (left) to vmax (right), and the two end values and the middle below."""
+    canvas = Image.fromarray(image).convert("RGBA")
+    layer = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(layer)
+    font = _font(canvas.height)
+    padding = font.size // 2
+    bar_width, bar_height = max(120, canvas.width // 4), font.size
+    line_height = round(font.size * 1.35)
+    box = (bar_width + 2 * padding, 2 * line_height + bar_height + 2 * padding)
+    x, y = _corner_origin(corner, box, canvas.size, margin=padding)
+    draw.rounded_rectangle([x, y, x + box[0], y + box[1]], radius=padding, fill=PANEL_COLOR)
+    draw.text((x + padding, y + padding), title, font=font, fill=TEXT_COLOR)
+
+    bar_top = y + padding + line_height
+    ramp = scalar_colors(np.linspace(vmin, vmax, bar_width), vmin, vmax, colormap)
+    ramp = (np.round(ramp * 255).astype(np.uint8)[None, :, :]).repeat(bar_height, axis=0)
+    layer.paste(Image.fromarray(ramp).convert("RGBA"), (x + padding, bar_top))
+
+    label_y = bar_top + bar_height + padding // 2
+    labels = [(f"{vmin:g}", "la"), (f"{(vmin + vmax) / 2:g}", "ma"), (f"{vmax:g}", "ra")]
+    for (text, anchor), fraction in zip(labels, (0.0, 0.5, 1.0)):
+        draw.text((x + padding + fraction * bar_width, label_y), text, font=font,
+                  fill=TEXT_COLOR, anchor=anchor)
+    return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
