@@ -1,0 +1,97 @@
+"""Per-tet elasticity: one formula serves the force, the matrix-free product and the stats.
+
+Symbols (Sifakis & Barbic 2012):
+    Ds  columns x0-x3, x1-x3, x2-x3 of a tet's current corners (3x3)
+    Bm  inverse of the same matrix at rest (3x3), so F = Ds Bm
+    W   rest volume (m^3);  mu, lam  Lame parameters (Pa)
+    R   polar rotation of F (identity for linear tets)
+"""
+
+import taichi as ti
+
+
+@ti.func
+def edge_matrix(a, b, c, d):
+    """Columns a-d, b-d, c-d: the Ds of a tet with corners a, b, c, d."""
+    return ti.Matrix.cols([a - d, b - d, c - d])
+
+
+@ti.func
+def linear_stress(eps, mu, lam):
+    """Small-strain stress sigma = 2 mu eps + lam tr(eps) I (Pa)."""
+    return 2.0 * mu * eps + lam * eps.trace() * ti.Matrix.identity(float, 3)
+
+
+@ti.func
+def stress_map(G, R, mu, lam):
+    """R sigma(sym(R^T G)): the stress of a displacement gradient G seen in the rotated frame.
+
+    With G = F - R this is the corotational stress at F; with G = dF it is the
+    stiffness applied to a direction, K(R) p. One function for both, so the
+    force and the implicit system can never disagree.
+    """
+    Gr = R.transpose() @ G
+    eps = 0.5 * (Gr + Gr.transpose())
+    return R @ linear_stress(eps, mu, lam)
+
+
+@ti.func
+def corner_forces(P, Bm, W):
+    """Forces on the four corners of a tet with first Piola stress P (N).
+
+    H = -W P Bm^T holds the forces on corners 0..2 in its columns; corner 3
+    gets minus their sum, so the tet exerts no net force.
+    """
+    H = -W * P @ Bm.transpose()
+    f0 = ti.Vector([H[0, 0], H[1, 0], H[2, 0]])
+    f1 = ti.Vector([H[0, 1], H[1, 1], H[2, 1]])
+    f2 = ti.Vector([H[0, 2], H[1, 2], H[2, 2]])
+    return f0, f1, f2, -(f0 + f1 + f2)
+
+
+@ti.func
+def is_finite(s):
+    """True unless s is NaN or +-inf (or beyond 1e30, which no sane state reaches)."""
+    return ti.abs(s) < 1e30
+
+
+@ti.func
+def polar_rotation(F):
+    """Proper rotation nearest to F (det R = +1), also for inverted or degenerate F.
+
+    F = U S V^T by SVD, R = U V^T. Taichi's SVD returns proper rotations U, V and
+    puts a reflection into the smallest singular value, which is the
+    inversion-safe choice of Irving et al. 2004; the determinant check keeps
+    that promise if a future SVD does not. A non-finite F gives the identity.
+    """
+    R = ti.Matrix.identity(float, 3)
+    if is_finite(F.sum()):
+        U, S, V = ti.svd(F)
+        if (U @ V.transpose()).determinant() < 0:
+            k = 0
+            for j in ti.static(range(1, 3)):
+                if ti.abs(S[j, j]) < ti.abs(S[k, k]):
+                    k = j
+            for i in ti.static(range(3)):
+                U[i, k] = -U[i, k]
+        R = U @ V.transpose()
+    return R
+
+
+@ti.func
+def strain_energy_density(F, R, mu, lam):
+    """psi = mu eps:eps + lam/2 tr(eps)^2 with eps = sym(R^T F) - I (J/m^3)."""
+    Fr = R.transpose() @ F
+    eps = 0.5 * (Fr + Fr.transpose()) - ti.Matrix.identity(float, 3)
+    return mu * (eps * eps).sum() + 0.5 * lam * eps.trace() ** 2
+
+
+@ti.func
+def stiffness_block(g, R, W, mu, lam):
+    """Diagonal 3x3 block of R Ke R^T for a corner with shape gradient g.
+
+    Ke's block is W (lam g g^T + mu (g.g I + g g^T)); rotating it only turns g into R g.
+    """
+    h = R @ g
+    hh = h.outer_product(h)
+    return W * (lam * hh + mu * (g.dot(g) * ti.Matrix.identity(float, 3) + hh))

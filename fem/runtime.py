@@ -1,0 +1,42 @@
+"""Starting Taichi: backend (`arch`) and floating-point precision, chosen once per process."""
+
+import contextlib
+import io
+
+import taichi as ti
+
+from fem.errors import FemError
+
+ARCHES = ("auto", "cpu", "gpu")
+PRECISIONS = ("f32", "f64")
+_current = {}
+
+
+def init(arch="cpu", precision="f32", debug=False):
+    """Start Taichi on `arch` ("cpu", "gpu" or "auto": a GPU backend when one exists, else CPU)
+    with `precision` ("f32" or "f64") as the float type of every field.
+
+    Returns the backend's name. Calling it again with other settings restarts
+    Taichi, which invalidates every field made before (tests use this).
+    """
+    if arch not in ARCHES:
+        raise FemError(f"--arch: must be one of {ARCHES}, got {arch!r}")
+    if precision not in PRECISIONS:
+        raise FemError(f"--precision: must be one of {PRECISIONS}, got {precision!r}")
+    # auto takes CUDA only: a Vulkan "GPU" may be Mesa's software driver, slower than the CPU backend
+    wanted = {"cpu": ti.cpu, "gpu": ti.gpu, "auto": ti.cuda}[arch]
+    fp = ti.f32 if precision == "f32" else ti.f64
+    # Taichi prints a banner on stdout; keep stdout for our own output
+    with contextlib.redirect_stdout(io.StringIO()):
+        ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug,
+                offline_cache=True, log_level=ti.ERROR)
+    backend = ti.lang.impl.current_cfg().arch.name
+    if arch == "gpu" and backend in ("x64", "arm64"):
+        raise FemError("--arch gpu: no GPU backend found on this machine (use --arch cpu or auto)")
+    _current.update(arch=backend, precision=precision)
+    return backend
+
+
+def current():
+    """{"arch": backend name, "precision": "f32"|"f64"} of the running Taichi, {} before init."""
+    return dict(_current)

@@ -1,0 +1,470 @@
+"""Scenes as data: what the builder needs to make a model, read from TOML or coursework files.
+
+A `Scene` holds placed, validated input only (meshes, materials, effects,
+initial conditions, impulses, solver settings); `fem.model.build_model` turns
+it into Taichi fields. The schema is documented in `scenes/README.md`.
+"""
+
+import difflib
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from fem.errors import FemError
+from fem.mesh import TetMesh, signed_volumes
+
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+METHODS = ("linear", "corotational")
+SOLVERS = ("pcg", "jacobi")
+
+
+@dataclass
+class Material:
+    """Young's modulus E (Pa), Poisson ratio nu, density (kg/m^3)."""
+
+    E: float
+    nu: float
+    density: float
+
+    def check(self, where):
+        if not self.E > 0:
+            raise FemError(f"{where}: E must be > 0, got {self.E}")
+        if not -1.0 < self.nu < 0.5:
+            raise FemError(f"{where}: nu must be in (-1, 0.5), got {self.nu}")
+        if not self.density > 0:
+            raise FemError(f"{where}: density must be > 0, got {self.density}")
+
+
+@dataclass
+class Body:
+    """One elastic object: its rest mesh already placed in the world."""
+
+    name: str
+    mesh: TetMesh                      # placed rest shape (world coordinates, m)
+    material: Material
+    method: str = "corotational"       # "linear" | "corotational"
+    pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # local vertex ids
+
+
+@dataclass
+class Selection:
+    """Vertices of one body (or of all bodies, body=None) picked by a region."""
+
+    body: int | None
+    vertices: np.ndarray | None = None   # local ids (requires a body)
+    sphere: tuple | None = None          # (centre (3,), radius) in world coordinates
+    box: tuple | None = None             # (min (3,), max (3,)) in world coordinates
+
+
+@dataclass
+class Initial:
+    """An initial condition applied to a selection at t = 0.
+
+    kind: "velocity" (value: (3,) m/s, set), "spin" / "twist" (value: axis, omega rad/s),
+    "stretch" / "squash" / "twist_shape" (value: axis, factor or angle in rad).
+    """
+
+    selection: Selection
+    kind: str
+    value: tuple
+
+
+@dataclass
+class Impulse:
+    """A velocity change delta_v (m/s) added to a selection at time t (s)."""
+
+    time: float
+    selection: Selection
+    delta_v: np.ndarray
+
+
+@dataclass
+class Effects:
+    """Which effects a scene switches on; an effect that is off costs nothing."""
+
+    gravity: tuple | None = None        # (gx, gy, gz) m/s^2
+    ground: float | None = None         # ground plane height y (m)
+    friction: float = 0.5               # tangential velocity removed on contact, 0..1
+    alpha: float = 0.0                  # Rayleigh damping D = alpha M + beta K
+    beta: float = 0.0
+
+    @property
+    def damping(self):
+        return self.alpha > 0 or self.beta > 0
+
+
+@dataclass
+class SolverSettings:
+    dt: float = 0.02                    # s
+    method: str = "pcg"                 # "pcg" | "jacobi"
+    tolerance: float = 1e-4             # relative residual |r| / |b|
+    max_iterations: int = 200
+    jacobi_omega: float | None = None   # None: chosen from a spectral estimate
+
+    def check(self, where):
+        if not self.dt > 0:
+            raise FemError(f"{where}: dt must be > 0, got {self.dt}")
+        if self.method not in SOLVERS:
+            raise FemError(f"{where}: solver must be one of {SOLVERS}, got {self.method!r}")
+        if not self.tolerance > 0:
+            raise FemError(f"{where}: tolerance must be > 0, got {self.tolerance}")
+        if not self.max_iterations >= 1:
+            raise FemError(f"{where}: max_iterations must be >= 1, got {self.max_iterations}")
+        if self.jacobi_omega is not None and not 0 < self.jacobi_omega < 2:
+            raise FemError(f"{where}: jacobi_omega must be in (0, 2), got {self.jacobi_omega}")
+
+
+@dataclass
+class Scene:
+    name: str
+    bodies: list[Body]
+    description: str = ""
+    path: str = ""
+    effects: Effects = field(default_factory=Effects)
+    solver: SolverSettings = field(default_factory=SolverSettings)
+    initial: list[Initial] = field(default_factory=list)
+    impulses: list[Impulse] = field(default_factory=list)
+    camera: dict | None = None          # {"eye": (3,), "target": (3,)}
+
+    def with_method(self, method):
+        """A copy with every body switched to `method` ("linear" | "corotational")."""
+        bodies = [replace(b, method=method) for b in self.bodies]
+        return replace(self, bodies=bodies)
+
+
+def place_mesh(mesh, position=(0, 0, 0), rotation=(1, 0, 0, 0), scale=1.0):
+    """Re-centre a mesh on its volume-weighted centre of mass, scale, rotate, translate.
+
+    rotation is a quaternion (w, x, y, z), normalised here; this is the coursework's
+    placement convention, so both scene formats agree.
+    """
+    X = mesh.vertices
+    vol = signed_volumes(X, mesh.tets)
+    centres = X[mesh.tets].mean(axis=1)
+    com = (vol[:, None] * centres).sum(axis=0) / vol.sum()
+    R = quaternion_matrix(rotation)
+    placed = (scale * (X - com)) @ R.T + np.asarray(position, float)
+    return TetMesh(placed, mesh.tets.copy(), mesh.source)
+
+
+def quaternion_matrix(q):
+    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def axis_angle_quaternion(axis, angle_deg):
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    h = np.radians(angle_deg) / 2
+    return (np.cos(h), *(np.sin(h) * a))
+
+
+# ---------------------------------------------------------------- finding scenes
+
+def builtin_scenes():
+    """{name: description} of every scene file shipped in scenes/."""
+    out = {}
+    for path in sorted(SCENES_DIR.glob("*.toml")):
+        with open(path, "rb") as f:
+            out[path.stem] = tomllib.load(f).get("description", "")
+    return out
+
+
+def load_scene(ref):
+    """A Scene from a built-in name, a .toml path or a coursework *-scene.txt path."""
+    path = Path(ref)
+    if path.suffix == ".txt":
+        from fem.coursework import read_coursework_scene
+        return read_coursework_scene(path)
+    if path.suffix != ".toml":
+        builtin = SCENES_DIR / f"{ref}.toml"
+        if not builtin.exists():
+            names = list(builtin_scenes())
+            hint = difflib.get_close_matches(str(ref), names, n=1)
+            also = f" (did you mean {hint[0]!r}?)" if hint else f"; built-in scenes: {', '.join(names)}"
+            raise FemError(f"{ref}: no such scene file or built-in scene{also}")
+        path = builtin
+    return read_toml_scene(path)
+
+
+# ---------------------------------------------------------------- TOML reading
+
+class Table:
+    """A TOML table that checks types and remembers which keys were read.
+
+    `done()` turns any key left unread into an error naming it and the closest
+    valid key, so a typo never passes silently.
+    """
+
+    def __init__(self, data, where, known):
+        if not isinstance(data, dict):
+            raise FemError(f"{where}: expected a table, got {type(data).__name__}")
+        self.data, self.where, self.known = data, where, known
+        unknown = [k for k in data if k not in known]
+        if unknown:
+            hint = difflib.get_close_matches(unknown[0], known, n=1)
+            also = f" (did you mean {hint[0]!r}?)" if hint else f"; valid keys: {', '.join(known)}"
+            raise FemError(f"{where}: unknown key {unknown[0]!r}{also}")
+
+    def __contains__(self, key):
+        return key in self.data
+
+    def get(self, key, kind, default=None):
+        if key not in self.data:
+            return default
+        value = self.data[key]
+        return check_type(value, kind, f"{self.where}.{key}")
+
+    def require(self, key, kind):
+        if key not in self.data:
+            raise FemError(f"{self.where}: missing key {key!r}")
+        return self.get(key, kind)
+
+    def table(self, key, known):
+        return Table(self.data.get(key, {}), f"{self.where}.{key}", known)
+
+
+def check_type(value, kind, where):
+    """Validate a TOML value: kind is 'float', 'int', 'str', 'bool', 'vec3', 'vec4', 'ints' or 'table'."""
+    def fail(expected):
+        raise FemError(f"{where}: expected {expected}, got {value!r}")
+
+    if kind == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            fail("a number")
+        if not np.isfinite(value):
+            fail("a finite number")
+        return float(value)
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            fail("an integer")
+        return value
+    if kind == "str":
+        return value if isinstance(value, str) else fail("a string")
+    if kind == "bool":
+        return value if isinstance(value, bool) else fail("true or false")
+    if kind in ("vec3", "vec4"):
+        n = int(kind[-1])
+        if not (isinstance(value, list) and len(value) == n):
+            fail(f"a list of {n} numbers")
+        return np.array([check_type(v, "float", where) for v in value])
+    if kind == "ints":
+        if not isinstance(value, list) or not value:
+            fail("a non-empty list of integers")
+        return np.array([check_type(v, "int", where) for v in value], dtype=np.int64)
+    if kind == "table":
+        return value if isinstance(value, dict) else fail("a table")
+    raise ValueError(kind)
+
+
+def read_toml_scene(path):
+    path = Path(path)
+    if not path.is_file():
+        raise FemError(f"{path}: no such scene file")
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise FemError(f"{path}: not valid TOML: {e}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise FemError(f"{path}: cannot read: {e}") from None
+    top = Table(data, str(path), ["name", "description", "body", "effects", "solver",
+                                  "initial", "impulse", "camera"])
+    bodies_raw = data.get("body")
+    if not isinstance(bodies_raw, list) or not bodies_raw:
+        raise FemError(f"{path}: a scene needs at least one [[body]] table")
+    bodies = [read_body(b, i, path) for i, b in enumerate(bodies_raw)]
+    names = [b.name for b in bodies]
+    if len(set(names)) != len(names):
+        raise FemError(f"{path}: body names must be unique, got {names}")
+
+    scene = Scene(
+        name=top.get("name", "str", path.stem),
+        description=top.get("description", "str", ""),
+        path=str(path),
+        bodies=bodies,
+        effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
+        solver=read_solver(top.table("solver", ["dt", "method", "tolerance", "max_iterations",
+                                                 "jacobi_omega"])),
+    )
+    scene.solver.check(f"{path}: solver")
+    for i, raw in enumerate(list_of_tables(data, "initial", path)):
+        scene.initial.append(read_initial(raw, f"{path}: initial[{i}]", bodies))
+    for i, raw in enumerate(list_of_tables(data, "impulse", path)):
+        scene.impulses.append(read_impulse(raw, f"{path}: impulse[{i}]", bodies))
+    if "camera" in data:
+        cam = top.table("camera", ["eye", "target"])
+        scene.camera = {"eye": cam.require("eye", "vec3"), "target": cam.require("target", "vec3")}
+    return scene
+
+
+def list_of_tables(data, key, path):
+    raw = data.get(key, [])
+    if not isinstance(raw, list) or not all(isinstance(t, dict) for t in raw):
+        raise FemError(f"{path}: {key} must be written as [[{key}]] tables")
+    return raw
+
+
+def read_body(raw, index, path):
+    from assets import build_mesh
+
+    where = f"{path}: body[{index}]"
+    t = Table(raw, where, ["name", "mesh", "material", "method", "position", "rotation",
+                           "rotation_axis_angle", "scale", "fixed", "pin"])
+    name = t.get("name", "str", f"body{index}")
+    where = f"{path}: body {name!r}"
+    mesh = build_mesh(t.require("mesh", "table"), path.parent, f"{where}.mesh")
+    m = t.table("material", ["E", "nu", "density"])
+    material = Material(m.require("E", "float"), m.require("nu", "float"), m.get("density", "float", 1000.0))
+    material.check(f"{where}.material")
+    method = t.get("method", "str", "corotational")
+    if method not in METHODS:
+        raise FemError(f"{where}.method: must be one of {METHODS}, got {method!r}")
+    rotation = t.get("rotation", "vec4", np.array([1.0, 0, 0, 0]))
+    if "rotation_axis_angle" in t:
+        aa = t.get("rotation_axis_angle", "vec4")
+        rotation = np.array(axis_angle_quaternion(aa[:3], aa[3]))
+    if not np.linalg.norm(rotation) > 0:
+        raise FemError(f"{where}.rotation: quaternion must be non-zero")
+    scale = t.get("scale", "float", 1.0)
+    if not scale > 0:
+        raise FemError(f"{where}.scale: must be > 0, got {scale}")
+    placed = place_mesh(mesh, t.get("position", "vec3", (0, 0, 0)), rotation, scale)
+    body = Body(name, placed, material, method)
+    if t.get("fixed", "bool", False):
+        body.pinned = np.arange(len(placed.vertices))
+    if "pin" in t:
+        sel = read_region(t.table("pin", REGION_KEYS[1:]), None, [body], f"{where}.pin", local_body=0)
+        body.pinned = np.union1d(body.pinned, select_vertices(sel, [body], where)[0][1])
+    return body
+
+
+REGION_KEYS = ["body", "vertices", "sphere", "box"]
+
+
+def read_region(t, body_name, bodies, where, local_body=None):
+    """A Selection from the region keys of a table: body, vertices, sphere, box."""
+    body = local_body
+    name = t.get("body", "str", body_name)
+    if name is not None and local_body is None:
+        names = [b.name for b in bodies]
+        if name not in names:
+            hint = difflib.get_close_matches(name, names, n=1)
+            also = f" (did you mean {hint[0]!r}?)" if hint else f"; bodies: {', '.join(names)}"
+            raise FemError(f"{where}.body: no body named {name!r}{also}")
+        body = names.index(name)
+    sel = Selection(body)
+    given = [k for k in ("vertices", "sphere", "box") if k in t]
+    if len(given) > 1:
+        raise FemError(f"{where}: give at most one of vertices, sphere, box (got {', '.join(given)})")
+    if "vertices" in t:
+        if body is None:
+            raise FemError(f"{where}: a vertex list needs a body")
+        sel.vertices = t.get("vertices", "ints")
+        n = len(bodies[body].mesh.vertices)
+        bad = sel.vertices[(sel.vertices < 0) | (sel.vertices >= n)]
+        if len(bad):
+            raise FemError(f"{where}.vertices: vertex {bad[0]} does not exist "
+                           f"(body {bodies[body].name!r} has {n} vertices)")
+    if "sphere" in t:
+        s = t.table("sphere", ["center", "radius"])
+        radius = s.require("radius", "float")
+        if not radius > 0:
+            raise FemError(f"{where}.sphere.radius: must be > 0, got {radius}")
+        sel.sphere = (s.require("center", "vec3"), radius)
+    if "box" in t:
+        b = t.table("box", ["min", "max"])
+        sel.box = (b.require("min", "vec3"), b.require("max", "vec3"))
+    return sel
+
+
+def select_vertices(sel, bodies, where):
+    """[(body index, local vertex ids)] picked by a selection; an empty pick is an error."""
+    picks = []
+    for i, body in enumerate(bodies):
+        if sel.body is not None and sel.body != i:
+            continue
+        X = body.mesh.vertices
+        ids = np.arange(len(X))
+        if sel.vertices is not None:
+            ids = sel.vertices
+        elif sel.sphere is not None:
+            c, r = sel.sphere
+            ids = ids[np.linalg.norm(X - c, axis=1) <= r]
+        elif sel.box is not None:
+            lo, hi = sel.box
+            ids = ids[np.all((X >= lo) & (X <= hi), axis=1)]
+        if len(ids):
+            picks.append((i, ids))
+    if not picks:
+        raise FemError(f"{where}: the region selects no vertex")
+    return picks
+
+
+def read_initial(raw, where, bodies):
+    kinds = ["velocity", "spin", "twist", "stretch", "squash", "twist_shape"]
+    t = Table(raw, where, REGION_KEYS + kinds)
+    sel = read_region(t, None, bodies, where)
+    given = [k for k in kinds if k in t]
+    if len(given) != 1:
+        raise FemError(f"{where}: give exactly one of {', '.join(kinds)}")
+    kind = given[0]
+    if kind == "velocity":
+        return Initial(sel, kind, (t.get(kind, "vec3"),))
+    spec = t.table(kind, ["axis", "omega", "factor", "angle_deg"])
+    axis = spec.require("axis", "vec3")
+    if not np.linalg.norm(axis) > 0:
+        raise FemError(f"{where}.{kind}.axis: must be non-zero")
+    axis = axis / np.linalg.norm(axis)
+    if kind in ("spin", "twist"):
+        return Initial(sel, kind, (axis, spec.require("omega", "float")))
+    if kind == "twist_shape":
+        return Initial(sel, kind, (axis, np.radians(spec.require("angle_deg", "float"))))
+    factor = spec.require("factor", "float")
+    if not factor > 0:
+        raise FemError(f"{where}.{kind}.factor: must be > 0, got {factor}")
+    return Initial(sel, kind, (axis, factor))
+
+
+def read_impulse(raw, where, bodies):
+    t = Table(raw, where, REGION_KEYS + ["time", "delta_v"])
+    time = t.get("time", "float", 0.0)
+    if time < 0:
+        raise FemError(f"{where}.time: must be >= 0, got {time}")
+    return Impulse(time, read_region(t, None, bodies, where), t.require("delta_v", "vec3"))
+
+
+def read_effects(t, path):
+    e = Effects()
+    if "gravity" in t:
+        g = t.data["gravity"]
+        if g is not False:
+            e.gravity = tuple(check_type(g, "vec3", f"{path}: effects.gravity"))
+    if "ground" in t:
+        g = t.table("ground", ["height", "friction"])
+        e.ground = g.get("height", "float", 0.0)
+        e.friction = g.get("friction", "float", 0.5)
+        if not 0 <= e.friction <= 1:
+            raise FemError(f"{path}: effects.ground.friction must be in [0, 1], got {e.friction}")
+    if "damping" in t:
+        d = t.table("damping", ["alpha", "beta"])
+        e.alpha, e.beta = d.get("alpha", "float", 0.0), d.get("beta", "float", 0.0)
+        if e.alpha < 0 or e.beta < 0:
+            raise FemError(f"{path}: effects.damping alpha and beta must be >= 0")
+    return e
+
+
+def read_solver(t):
+    s = SolverSettings()
+    s.dt = t.get("dt", "float", s.dt)
+    s.method = t.get("method", "str", s.method)
+    s.tolerance = t.get("tolerance", "float", s.tolerance)
+    s.max_iterations = t.get("max_iterations", "int", s.max_iterations)
+    s.jacobi_omega = t.get("jacobi_omega", "float", None)
+    return s

@@ -1,0 +1,245 @@
+"""Backward Euler with a matrix-free linear solve (method.md).
+
+One step solves
+
+    A v_new = M v + dt (f_elastic(x) + f_external),   A = (1 + dt alpha) M + (dt beta + dt^2) K(R)
+    x_new   = x + dt v_new
+
+with K(R) = sum_e R Ke R^T never assembled: `stiffness_product` applies it tet by
+tet, and per-vertex sums gather over the model's adjacency (no atomics, so the
+result is the same bit for bit on every run). PCG (Jacobi-preconditioned CG) is
+the default; weighted Jacobi iteration is the cheap alternative.
+
+Effects a scene leaves off are not compiled: gravity, pins and ground contact are
+`ti.static` branches fixed when the solver is made, corotation is a template
+argument, and rotations are only extracted when some body is corotational.
+"""
+
+import taichi as ti
+
+from fem.elastic import (corner_forces, edge_matrix, is_finite, polar_rotation,
+                         stiffness_block, stress_map)
+
+
+@ti.data_oriented
+class ImplicitSolver:
+    """Work fields and kernels of the implicit step for one model."""
+
+    def __init__(self, model, effects):
+        n, m = model.n_vertices, model.n_tets
+        self.model = model
+        self.has_gravity = effects.gravity is not None    # compile-time switch
+        self.gravity = effects.gravity or (0.0, 0.0, 0.0)  # m/s^2
+        self.ground = effects.ground                      # compile-time: None or height
+        self.friction = effects.friction
+        self.pins = model.has_pins                        # compile-time: filter pinned rows
+        vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
+        self.rotations = ti.Matrix.field(3, 3, float, m)  # R per tet (identity for linear tets)
+        self.corner = vec(4 * m)                          # per-corner values before the gather
+        self.b, self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n), vec(n)
+        self.solution = vec(n)                            # v_new while solving
+        self.block_inverse = ti.Matrix.field(3, 3, float, n)  # Jacobi preconditioner, inverse 3x3 blocks of A
+        self.x_backup, self.v_backup = vec(n), vec(n)
+        self.rz = ti.field(float, ())                     # PCG scalars stay on the device
+        self.rz_new = ti.field(float, ())
+        self.pAp = ti.field(float, ())
+        self.beta = ti.field(float, ())
+        self.reset_rotations()
+
+    # ------------------------------------------------------------ per-tet kernels
+
+    @ti.kernel
+    def reset_rotations(self):
+        for e in self.rotations:
+            self.rotations[e] = ti.Matrix.identity(float, 3)
+
+    @ti.func
+    def deformation_gradient(self, x: ti.template(), e):
+        t = self.model.tets[e]
+        return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]]) @ self.model.Bm[e]
+
+    @ti.kernel
+    def extract_rotations(self, x: ti.template()):
+        """R = polar rotation of F for every corotational tet."""
+        for e in self.rotations:
+            if self.model.corotational[e]:
+                self.rotations[e] = polar_rotation(self.deformation_gradient(x, e))
+
+    @ti.kernel
+    def elastic_forces(self, x: ti.template(), corot: ti.template()):
+        """corner <- f_e = -R Ke (R^T x_e - X_e) per tet (linear: R = I)."""
+        for e in self.rotations:
+            R = ti.Matrix.identity(float, 3)
+            if ti.static(corot):
+                R = self.rotations[e]
+            F = self.deformation_gradient(x, e)
+            P = stress_map(F - R, R, self.model.mu[e], self.model.lam[e])
+            self.store_corners(e, P)
+
+    @ti.kernel
+    def stiffness_product(self, u: ti.template(), w: ti.template(), corot: ti.template()):
+        """corner <- (K(R) d)_e per tet for the direction d = u + beta w (N/m times m/s).
+
+        Taking d = z + beta p here fuses the CG direction update into this pass.
+        """
+        beta = self.beta[None]
+        for e in self.rotations:
+            t = self.model.tets[e]
+            d0, d1 = u[t[0]] + beta * w[t[0]], u[t[1]] + beta * w[t[1]]
+            d2, d3 = u[t[2]] + beta * w[t[2]], u[t[3]] + beta * w[t[3]]
+            dF = edge_matrix(d0, d1, d2, d3) @ self.model.Bm[e]
+            R = ti.Matrix.identity(float, 3)
+            if ti.static(corot):
+                R = self.rotations[e]
+            self.store_corners(e, -stress_map(dF, R, self.model.mu[e], self.model.lam[e]))
+
+    @ti.func
+    def store_corners(self, e, P):
+        f0, f1, f2, f3 = corner_forces(P, self.model.Bm[e], self.model.rest_volume[e])
+        self.corner[4 * e + 0] = f0
+        self.corner[4 * e + 1] = f1
+        self.corner[4 * e + 2] = f2
+        self.corner[4 * e + 3] = f3
+
+    # ------------------------------------------------------------ per-vertex kernels
+
+    @ti.func
+    def gather(self, i):
+        """Sum of the corner values of every tet around vertex i."""
+        s = ti.Vector.zero(float, 3)
+        for j in range(self.model.adjacency_start[i], self.model.adjacency_start[i + 1]):
+            s += self.corner[self.model.adjacency[j]]
+        return s
+
+    @ti.func
+    def filtered(self, i, a):
+        """Zero the rows of pinned vertices (filtered CG, Baraff & Witkin 1998)."""
+        if ti.static(self.pins):
+            a *= self.model.free[i]
+        return a
+
+    @ti.kernel
+    def build_preconditioner(self, cM: float, cK: float, corot: ti.template()):
+        """block_inverse <- inverse of the 3x3 diagonal blocks of A = cM M + cK K(R)."""
+        for i in self.block_inverse:
+            block = cM * self.model.mass[i] * ti.Matrix.identity(float, 3)
+            for j in range(self.model.adjacency_start[i], self.model.adjacency_start[i + 1]):
+                slot = self.model.adjacency[j]
+                e, k = slot // 4, slot % 4
+                Bm = self.model.Bm[e]
+                g = -(Bm[0, :] + Bm[1, :] + Bm[2, :])
+                if k < 3:
+                    g = Bm[k, :]
+                R = ti.Matrix.identity(float, 3)
+                if ti.static(corot):
+                    R = self.rotations[e]
+                block += cK * stiffness_block(g, R, self.model.rest_volume[e], self.model.mu[e], self.model.lam[e])
+            self.block_inverse[i] = self.filtered(i, block.inverse())
+
+    @ti.kernel
+    def assemble_rhs(self, x: ti.template(), v: ti.template(), dt: float) -> float:
+        """b <- M v + dt (f_elastic + M g); solution <- v (warm start). Returns |b|^2."""
+        bb = 0.0
+        for i in self.b:
+            m = self.model.mass[i]
+            f = self.gather(i)
+            if ti.static(self.has_gravity):
+                f += m * ti.Vector(self.gravity, dt=float)
+            b = self.filtered(i, m * v[i] + dt * f)
+            self.b[i] = b
+            self.solution[i] = self.filtered(i, v[i])
+            self.p[i] = ti.Vector.zero(float, 3)
+            bb += b.dot(b)
+        self.beta[None] = 0.0
+        return bb
+
+    @ti.kernel
+    def start_residual(self, cM: float, cK: float) -> float:
+        """r <- b - A solution, z <- P r, rz <- r.z. Returns |r|^2."""
+        rz, rr = 0.0, 0.0
+        for i in self.r:
+            Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
+            r = self.filtered(i, self.b[i] - Ax)
+            z = self.block_inverse[i] @ r
+            self.r[i], self.z[i] = r, z
+            rz += r.dot(z)
+            rr += r.dot(r)
+        self.rz[None] = rz
+        return rr
+
+    @ti.kernel
+    def direction_product(self, cM: float, cK: float):
+        """p <- z + beta p and Ap <- cM M p + cK K p (K p gathered from the corners); pAp <- p.Ap."""
+        pAp = 0.0
+        beta = self.beta[None]
+        for i in self.p:
+            p = self.z[i] + beta * self.p[i]
+            Ap = self.filtered(i, cM * self.model.mass[i] * p + cK * self.gather(i))
+            self.p[i], self.Ap[i] = p, Ap
+            pAp += p.dot(Ap)
+        self.pAp[None] = pAp
+
+    @ti.kernel
+    def cg_update(self) -> float:
+        """solution += alpha p, r -= alpha Ap, z <- P r; sets beta for the next direction. Returns |r|^2."""
+        alpha = 0.0
+        if self.pAp[None] > 0:
+            alpha = self.rz[None] / self.pAp[None]
+        rz, rr = 0.0, 0.0
+        for i in self.r:
+            self.solution[i] += alpha * self.p[i]
+            r = self.r[i] - alpha * self.Ap[i]
+            z = self.block_inverse[i] @ r
+            self.r[i], self.z[i] = r, z
+            rz += r.dot(z)
+            rr += r.dot(r)
+        self.beta[None] = 0.0
+        if self.rz[None] > 0:
+            self.beta[None] = rz / self.rz[None]
+        self.rz[None] = rz
+        return rr
+
+    @ti.kernel
+    def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
+        """solution += omega P (b - A solution). Returns |b - A solution|^2 before the update."""
+        rr = 0.0
+        for i in self.r:
+            Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
+            r = self.filtered(i, self.b[i] - Ax)
+            self.solution[i] += omega * (self.block_inverse[i] @ r)
+            rr += r.dot(r)
+        return rr
+
+    @ti.kernel
+    def commit(self, x: ti.template(), v: ti.template(), dt: float) -> ti.i32:
+        """v <- solution, x <- x + dt v; keeps a backup. Returns the count of non-finite vertices."""
+        bad = 0
+        for i in x:
+            self.x_backup[i], self.v_backup[i] = x[i], v[i]
+            v[i] = self.solution[i]
+            x[i] += dt * self.solution[i]
+            if not is_finite(x[i].sum() + v[i].sum()):
+                bad += 1
+        return bad
+
+    @ti.kernel
+    def restore(self, x: ti.template(), v: ti.template()):
+        for i in x:
+            x[i], v[i] = self.x_backup[i], self.v_backup[i]
+
+    @ti.kernel
+    def ground_contact(self, x: ti.template(), v: ti.template()):
+        """Vertices below the ground plane go back onto it; their normal velocity stops
+        and friction removes part of the tangential one."""
+        for i in x:
+            if x[i][1] < self.ground:
+                x[i][1] = self.ground
+                v[i][1] = ti.max(v[i][1], 0.0)
+                v[i][0] *= 1.0 - self.friction
+                v[i][2] *= 1.0 - self.friction
+
+    @ti.kernel
+    def matrix_product(self, u: ti.template(), out: ti.template(), cM: float, cK: float):
+        """out <- A u, gathered from `corner` after stiffness_product(u): for tests and checks."""
+        for i in out:
+            out[i] = self.filtered(i, cM * self.model.mass[i] * u[i] + cK * self.gather(i))
