@@ -12,7 +12,6 @@ viewer, far away so it acts like the sun, and a weaker headlight at the eye.
 """
 
 import contextlib
-import ctypes
 import os
 import sys
 from dataclasses import dataclass
@@ -22,13 +21,13 @@ import taichi as ti
 
 from app.camera import Camera
 
-AMBIENT = 0.28
-KEY_LIGHT = 0.55
-HEADLIGHT = 0.3
+AMBIENT = 0.3
+KEY_LIGHT = 0.5
+HEADLIGHT = 0.35
 BACKGROUND_TOP = np.array([0.60, 0.66, 0.75])
 BACKGROUND_BOTTOM = np.array([0.90, 0.91, 0.93])
-FLOOR_LIGHT = np.array([0.86, 0.86, 0.85])
-FLOOR_DARK = np.array([0.74, 0.75, 0.76])
+FLOOR_LIGHT = np.array([0.88, 0.88, 0.87])
+FLOOR_DARK = np.array([0.79, 0.80, 0.81])
 FLOOR_TILES = 24  # per side
 
 
@@ -141,7 +140,7 @@ def lights(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """Point lights (positions (2, 3), intensities (2,)): key light, headlight."""
     right, true_up, forward = camera.basis()
     distance = np.linalg.norm(camera.eye - camera.target)
-    key_direction = -0.5 * right + 1.0 * true_up - 0.6 * forward
+    key_direction = -0.5 * right + 1.5 * true_up - 0.5 * forward
     key_direction /= np.linalg.norm(key_direction)
     # A thousand scene sizes away the key light's direction barely changes across the scene.
     key_position = camera.target + 1000.0 * distance * key_direction
@@ -214,18 +213,17 @@ def background(width: int, height: int) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _silenced_stdout():
-    """Hide what native code prints to stdout (the Vulkan loader's error on a
+def _silenced_stderr():
+    """Hide what native code writes to stderr (the Vulkan loader's error on a
     failed probe), since the fallback message already says what happened."""
-    sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = os.dup(2)
     devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
     try:
         yield
     finally:
-        ctypes.CDLL(None).fflush(None)  # empty C's buffer while it still points at /dev/null
-        os.dup2(saved, 1)
+        os.dup2(saved, 2)
         os.close(saved)
         os.close(devnull)
 
@@ -248,7 +246,7 @@ def make_renderer(kind: str, width: int, height: int, smooth: bool = True) -> Re
     if kind != "auto":
         raise ValueError(f"unknown renderer kind {kind!r}: use 'auto', 'ggui' or 'software'")
     try:
-        with _silenced_stdout():
+        with _silenced_stderr():
             return GGUIRenderer(width, height, smooth)
     except RuntimeError as error:
         print(f"GGUI unavailable ({error}); using the software renderer", file=sys.stderr)

@@ -99,8 +99,11 @@ def shade(visible: ti.template(), screen: ti.template(), triangles: ti.template(
             albedo = weights[0] * colors[i] + weights[1] * colors[j] + weights[2] * colors[k]
             light = ti.cast(AMBIENT, ti.f32)
             for m in ti.static(range(2)):
-                to_light = (ti.Vector([light_positions[m, 0], light_positions[m, 1], light_positions[m, 2]]) - point).normalized()
-                light += light_intensities[m] * ti.max(normal.dot(to_light), 0.0)
+                light_position = ti.Vector([light_positions[m, 0], light_positions[m, 1], light_positions[m, 2]])
+                # normalized() works in the default float type, which may be f64.
+                lambert = ti.cast(normal.dot((light_position - point).normalized()), ti.f32)
+                if lambert > 0:
+                    light += light_intensities[m] * lambert
             rgb = albedo * light
         image[y, x] = ti.cast(ti.math.clamp(rgb, 0.0, 1.0) * 255.0 + 0.5, ti.u8)
 

@@ -1,0 +1,184 @@
+"""Renderers, camera and overlays: the checks one would do by eye, as numbers."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from app.camera import Camera, auto_frame
+from app.overlay import BODY_PALETTE, body_colors, draw_legend, draw_text_overlay, scalar_colors
+from app.render import make_renderer
+
+WIDTH, HEIGHT = 160, 120
+REPO = Path(__file__).resolve().parents[1]
+RED = (0.9, 0.1, 0.1)
+BLUE = (0.1, 0.2, 0.9)
+
+
+def cube(size=1.0):
+    """Unit cube centred at the origin: vertices (8, 3), outward counter-clockwise faces (12, 3)."""
+    vertices = (np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) - 0.5) * size
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    faces = [[a, b, c] for a, b, c, d in quads] + [[a, c, d] for a, b, c, d in quads]
+    return vertices, np.array(faces, np.int32)
+
+
+def reddish(image):
+    """Mask (H, W) of pixels clearly redder than anything grey or blue."""
+    rgb = image.astype(int)
+    return (rgb[..., 0] > rgb[..., 1] + 60) & (rgb[..., 0] > rgb[..., 2] + 60)
+
+
+def run_python(code, **env):
+    """Run code in a fresh interpreter (Taichi initialised there) from the repository root."""
+    return subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "PYTHONPATH": str(REPO), **env})
+
+
+@pytest.fixture(scope="module", params=[ti.f32, ti.f64], ids=["f32", "f64"])
+def software(request):
+    """A software renderer, under each precision the engine may start Taichi with."""
+    ti.init(arch=ti.cpu, default_fp=request.param)
+    return make_renderer("software", WIDTH, HEIGHT)
+
+
+@pytest.fixture(scope="module")
+def cube_scene():
+    vertices, faces = cube()
+    colors = np.tile(RED, (len(vertices), 1))
+    camera = auto_frame(vertices.min(0), vertices.max(0), aspect=WIDTH / HEIGHT)
+    return vertices, faces, colors, camera
+
+
+def test_camera_ray_goes_through_the_projected_point():
+    camera = Camera(eye=[2.0, 1.0, 3.0], target=[0.0, 0.2, 0.0])
+    point = np.array([0.3, -0.1, 0.4])
+    clip = camera.view_proj(WIDTH / HEIGHT) @ np.append(point, 1.0)
+    px = (clip[0] / clip[3] + 1) / 2 * WIDTH
+    py = (1 - clip[1] / clip[3]) / 2 * HEIGHT
+    origin, direction = camera.ray(px, py, WIDTH, HEIGHT)
+    to_point = point - origin
+    assert np.linalg.norm(np.cross(direction, to_point)) < 1e-9 * np.linalg.norm(to_point)
+    assert direction @ to_point > 0
+
+
+def test_auto_frame_keeps_every_vertex_in_the_image():
+    rng = np.random.default_rng(0)
+    for aspect in (WIDTH / HEIGHT, 0.5, 2.0):
+        points = rng.uniform([-3.0, 0.0, 1.0], [1.0, 0.5, 9.0], size=(500, 3))
+        camera = auto_frame(points.min(0), points.max(0), aspect=aspect)
+        clip = camera.view_proj(aspect) @ np.c_[points, np.ones(len(points))].T
+        ndc = clip[:3] / clip[3]
+        assert np.all(np.abs(ndc[:2]) < 1.0), aspect
+        assert np.all(clip[3] > camera.near)
+
+
+def test_software_cube_is_drawn_where_it_projects(software, cube_scene):
+    vertices, faces, colors, camera = cube_scene
+    image = software.render(vertices, faces, colors, camera)
+    assert image.shape == (HEIGHT, WIDTH, 3) and image.dtype == np.uint8
+    rows, cols = np.nonzero(reddish(image))
+    assert len(rows) > 0.1 * WIDTH * HEIGHT
+    # The red pixels lie inside the box spanned by the projected corners.
+    clip = camera.view_proj(WIDTH / HEIGHT) @ np.c_[vertices, np.ones(8)].T
+    px = (clip[0] / clip[3] + 1) / 2 * WIDTH
+    py = (1 - clip[1] / clip[3]) / 2 * HEIGHT
+    assert px.min() - 1 <= cols.min() and cols.max() <= px.max() + 1
+    assert py.min() - 1 <= rows.min() and rows.max() <= py.max() + 1
+    assert reddish(image)[HEIGHT // 2, WIDTH // 2]
+
+
+def test_software_near_triangle_hides_far_one_in_either_order(software):
+    near = [[-1.0, -1.0, 0.5], [1.0, -1.0, 0.5], [0.0, 1.0, 0.5]]
+    far = [[-1.0, -1.0, -0.5], [1.0, -1.0, -0.5], [0.0, 1.0, -0.5]]
+    vertices, colors = np.array(near + far), np.array([RED] * 3 + [BLUE] * 3)
+    camera = Camera(eye=[0.0, 0.0, 4.0], target=[0.0, 0.0, 0.0], near=0.1, far=20.0)
+    for faces in ([[0, 1, 2], [3, 4, 5]], [[3, 4, 5], [0, 1, 2]]):
+        image = software.render(vertices, np.array(faces), colors, camera, ground_y=-5.0)
+        assert reddish(image)[HEIGHT // 2, WIDTH // 2]
+
+
+def test_software_is_deterministic(software, cube_scene):
+    vertices, faces, colors, camera = cube_scene
+    first = software.render(vertices, faces, colors, camera)
+    again = software.render(vertices, faces, colors, camera)
+    fresh = make_renderer("software", WIDTH, HEIGHT).render(vertices, faces, colors, camera)
+    assert np.array_equal(first, again) and np.array_equal(first, fresh)
+
+
+def test_flat_and_smooth_shading_differ_on_a_cube(software, cube_scene):
+    vertices, faces, colors, camera = cube_scene
+    flat = make_renderer("software", WIDTH, HEIGHT, smooth=False).render(vertices, faces, colors, camera)
+    smooth = software.render(vertices, faces, colors, camera)
+    assert reddish(flat).sum() > 0.1 * WIDTH * HEIGHT
+    assert not np.array_equal(flat, smooth)
+
+
+def vulkan_probe():
+    """None when a GGUI offscreen window opens in a fresh process, else why not."""
+    probe = run_python("import taichi as ti; ti.init(arch=ti.cpu); "
+                       "ti.ui.Window('probe', (32, 32), show_window=False)")
+    return None if probe.returncode == 0 else (probe.stderr.strip().splitlines() or ["crashed"])[-1]
+
+
+def test_ggui_cube_matches_the_software_picture(software, cube_scene):
+    reason = vulkan_probe()
+    if reason:
+        pytest.skip(f"GGUI needs a working Vulkan driver (apt: libvulkan1 mesa-vulkan-drivers): {reason}")
+    vertices, faces, colors, camera = cube_scene
+    ggui = make_renderer("ggui", WIDTH, HEIGHT)
+    image = ggui.render(vertices, faces, colors, camera)
+    assert image.shape == (HEIGHT, WIDTH, 3) and image.dtype == np.uint8
+    assert reddish(image).sum() > 0.1 * WIDTH * HEIGHT
+    reference = software.render(vertices, faces, colors, camera)
+    difference = np.abs(image.astype(int) - reference.astype(int)).max(axis=2)
+    assert np.mean(difference > 16) < 0.01  # only a few edge pixels may differ
+
+
+def test_auto_falls_back_to_software_without_vulkan():
+    result = run_python(
+        "import sys, numpy as np, taichi as ti\n"
+        "ti.init(arch=ti.cpu)\n"
+        "from app.camera import Camera\n"
+        "from app.render import make_renderer\n"
+        "renderer = make_renderer('auto', 32, 24)\n"
+        "image = renderer.render(np.eye(3), np.array([[0, 1, 2]]), np.ones((3, 3)),\n"
+        "                        Camera(eye=[2.0, 2.0, 2.0], target=[0.0, 0.0, 0.0]))\n"
+        "print(renderer.name, image.shape)\n",
+        VK_ICD_FILENAMES="/nonexistent")
+    assert result.returncode == 0, result.stderr
+    assert "software (24, 32, 3)" in result.stdout
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "software renderer" in lines[0] and "Vulkan" in lines[0], lines
+
+
+def test_text_overlay_changes_only_its_corner():
+    image = np.full((HEIGHT, WIDTH, 3), 200, np.uint8)
+    drawn = draw_text_overlay(image, ["t = 0.50 s", "frame 30"], corner="top-left")
+    changed = np.any(drawn != image, axis=2)
+    assert changed[:HEIGHT // 4, :WIDTH // 4].any()
+    assert not changed[HEIGHT // 2:, :].any() and not changed[:, WIDTH // 2:].any()
+    assert image.min() == 200  # the input is left alone
+
+
+def test_legend_shows_the_colour_ramp():
+    image = np.full((HEIGHT * 2, WIDTH * 2, 3), 200, np.uint8)
+    drawn = draw_legend(image, "J", 0.8, 1.2, corner="bottom-right")
+    changed = np.any(drawn != image, axis=2)
+    assert changed[HEIGHT:, WIDTH:].any() and not changed[:HEIGHT, :].any()
+    ends = (np.round(scalar_colors([0.8, 1.2], 0.8, 1.2) * 255)).astype(int)
+    for colour in ends:
+        assert np.any(np.abs(drawn.astype(int) - colour).max(axis=2) <= 2)
+
+
+def test_colour_maps():
+    blue, grey, red = scalar_colors([0.5, 1.0, 7.0], 0.8, 1.2)
+    assert blue[2] > blue[0] and red[0] > red[2]
+    assert np.ptp(grey) < 0.01  # unchanged volume is neutral
+    palette = body_colors(np.arange(6))
+    assert palette.shape == (6, 3) and len(np.unique(palette, axis=0)) == 6
+    assert np.array_equal(body_colors([0]), body_colors([len(BODY_PALETTE)]))  # colours cycle
