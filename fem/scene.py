@@ -176,11 +176,17 @@ def builtin_scenes():
     return out
 
 
-def load_scene(ref):
-    """A Scene from a built-in name, a .toml path or a coursework *-scene.txt path."""
+def load_scene(ref, overrides=None):
+    """A Scene from a built-in name, a .toml path or a coursework *-scene.txt path.
+
+    overrides: ["key.path=value", ...] applied to a TOML scene before it is read,
+    e.g. "solver.dt=0.01" or "body.soft.mesh.cells=[8, 8, 8]" (a body by name or index).
+    """
     path = Path(ref)
     if path.suffix == ".txt":
         from fem.coursework import read_coursework_scene
+        if overrides:
+            raise FemError(f"{path}: --set works on TOML scenes only")
         return read_coursework_scene(path)
     if path.suffix != ".toml":
         builtin = SCENES_DIR / f"{ref}.toml"
@@ -190,7 +196,7 @@ def load_scene(ref):
             also = f" (did you mean {hint[0]!r}?)" if hint else f"; built-in scenes: {', '.join(names)}"
             raise FemError(f"{ref}: no such scene file or built-in scene{also}")
         path = builtin
-    return read_toml_scene(path)
+    return read_toml_scene(path, overrides or [])
 
 
 # ---------------------------------------------------------------- TOML reading
@@ -263,7 +269,33 @@ def check_type(value, kind, where):
     raise ValueError(kind)
 
 
-def read_toml_scene(path):
+def apply_override(data, text):
+    """Set one "a.b.c=value" in the raw TOML data; value is TOML (a bare word counts as a string)."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise FemError(f"--set {text!r}: expected KEY=VALUE, e.g. solver.dt=0.01")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    node, parts = data, key.strip().split(".")
+    for i, part in enumerate(parts[:-1]):
+        if isinstance(node, list):
+            names = [b.get("name") for b in node]
+            if part in names:
+                node = node[names.index(part)]
+            elif part.isdigit() and int(part) < len(node):
+                node = node[int(part)]
+            else:
+                raise FemError(f"--set {key}: no entry {part!r} in {'.'.join(parts[:i]) or 'scene'}")
+        else:
+            node = node.setdefault(part, {})
+    if not isinstance(node, dict):
+        raise FemError(f"--set {key}: {'.'.join(parts[:-1])} is not a table")
+    node[parts[-1]] = value
+
+
+def read_toml_scene(path, overrides=()):
     path = Path(path)
     if not path.is_file():
         raise FemError(f"{path}: no such scene file")
@@ -274,6 +306,8 @@ def read_toml_scene(path):
         raise FemError(f"{path}: not valid TOML: {e}") from None
     except (OSError, UnicodeDecodeError) as e:
         raise FemError(f"{path}: cannot read: {e}") from None
+    for text in overrides:
+        apply_override(data, text)
     top = Table(data, str(path), ["name", "description", "body", "effects", "solver",
                                   "initial", "impulse", "camera"])
     bodies_raw = data.get("body")

@@ -33,15 +33,17 @@ class Simulation:
     """Steps one scene with backward Euler; see fem.solver for the maths.
 
     method: None keeps each body's own method, "linear" / "corotational" overrides all.
-    solver: overrides of the scene's solver settings (dt, method, tolerance, max_iterations).
+    solver ("pcg" | "jacobi"), dt (s), tolerance, max_iterations: override the scene's
+    solver settings where not None.
     """
 
-    def __init__(self, scene, method=None, **solver):
+    def __init__(self, scene, method=None, solver=None, dt=None, tolerance=None, max_iterations=None):
         if method is not None:
             if method not in METHODS:
                 raise FemError(f"method must be one of {METHODS}, got {method!r}")
             scene = scene.with_method(method)
-        self.settings = replace(scene.solver, **{k: v for k, v in solver.items() if v is not None})
+        overrides = {"method": solver, "dt": dt, "tolerance": tolerance, "max_iterations": max_iterations}
+        self.settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
         self.settings.check(scene.path or scene.name)
         self.scene = scene
         self.model = Model(scene)

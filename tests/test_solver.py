@@ -1,0 +1,160 @@
+"""The implicit step: conservation, dissipation, convergence, and effects that cost nothing when off."""
+
+import numpy as np
+import pytest
+import taichi as ti
+from conftest import box_mesh, make_scene
+
+import fem
+from fem.scene import Effects, Initial, Selection, SolverSettings
+
+
+def momentum(sim):
+    return (sim.model.mass_np[:, None] * sim.velocities()).sum(axis=0)
+
+
+def angular_momentum(sim):
+    x, v = sim.positions(), sim.velocities()
+    return (sim.model.mass_np[:, None] * np.cross(x, v)).sum(axis=0)
+
+
+def spinning(method, omega=4.0, E=2e4, **kw):
+    scene = make_scene(box_mesh(3), method, E=E, nu=0.3, density=100.0, **kw)
+    scene.initial = [Initial(Selection(None), "spin", (np.array([0.0, 1.0, 0.0]), omega))]
+    return scene
+
+
+@pytest.mark.parametrize("method", ["linear", "corotational"])
+def test_momentum_is_conserved_without_effects(f64, method):
+    scene = spinning(method)
+    scene.initial.append(Initial(Selection(0, vertices=np.array([0, 5])), "velocity", (np.array([3.0, -1.0, 2.0]),)))
+    sim = fem.Simulation(scene)
+    p0, L0 = momentum(sim), angular_momentum(sim)
+    for _ in range(30):
+        sim.step()
+    scale = np.abs(sim.model.mass_np).sum() * 4.0
+    np.testing.assert_allclose(momentum(sim), p0, atol=1e-9 * scale)
+    if method == "corotational":   # angular momentum up to solver tolerance and backward Euler's dissipation
+        np.testing.assert_allclose(angular_momentum(sim), L0, atol=0.01 * np.linalg.norm(L0))
+
+
+@pytest.mark.parametrize("method", ["linear", "corotational"])
+def test_energy_never_rises_with_damping(f64, method):
+    scene = make_scene(box_mesh(3), method, E=1e4, nu=0.3, density=100.0,
+                       effects=Effects(alpha=0.1, beta=0.01))
+    scene.initial = [Initial(Selection(None), "twist_shape", (np.array([1.0, 0, 0]), np.radians(60))),
+                     Initial(Selection(None), "spin", (np.array([0.0, 0, 1.0]), 2.0))]
+    sim = fem.Simulation(scene)
+    s = sim.stats()
+    energies = [s["kinetic_energy"] + s["elastic_energy"]]
+    for _ in range(60):
+        sim.step()
+        s = sim.stats()
+        energies.append(s["kinetic_energy"] + s["elastic_energy"])
+    energies = np.array(energies)
+    assert energies[-1] < 0.5 * energies[0]
+    assert np.all(np.diff(energies) <= 1e-6 * energies[0])
+
+
+def test_rigid_spin_keeps_volume_under_corotation_and_inflates_linear(f64):
+    ratios = {}
+    for method in ("linear", "corotational"):
+        sim = fem.Simulation(spinning(method, omega=6.0, E=1e6))   # stiff: no centrifugal stretch
+        worst = 0.0
+        for _ in range(60):   # 0.6 s, about half a turn
+            sim.step()
+            worst = max(worst, abs(sim.stats()["volume_ratio"][0] - 1))
+        ratios[method] = worst
+    assert ratios["corotational"] < 0.005
+    assert ratios["linear"] > 0.1
+
+
+def test_pcg_reaches_tolerance_and_reports_iterations(f64):
+    scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-8, max_iterations=400))
+    scene.initial.append(Initial(Selection(None), "stretch", (np.array([1.0, 0, 0]), 1.3)))
+    sim = fem.Simulation(scene)
+    sim.step()
+    s = sim.solver
+    b = s.b.to_numpy()
+    v_new = sim.velocities()
+    cM, cK = sim.coefficients
+    true_residual = np.linalg.norm(b - sim.apply_matrix(v_new, cM, cK)) / np.linalg.norm(b)
+    info = sim.last
+    assert info["converged"] and 0 < info["solver_iters"] < 400
+    assert info["residual"] <= 1e-8
+    assert true_residual == pytest.approx(info["residual"], rel=1e-3, abs=1e-12)
+
+
+def test_iteration_cap_is_reported_not_hidden(f64):
+    scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-12, max_iterations=3))
+    scene.initial.append(Initial(Selection(None), "stretch", (np.array([1.0, 0, 0]), 1.3)))
+    info = fem.Simulation(scene).step()
+    assert info["solver_iters"] == 3 and not info["converged"] and info["residual"] > 1e-12
+
+
+def test_jacobi_converges_to_the_pcg_solution(f64):
+    solutions = {}
+    for solver in ("pcg", "jacobi"):
+        scene = spinning("corotational", solver=SolverSettings(dt=0.01, method=solver, tolerance=1e-9,
+                                                               max_iterations=5000))
+        scene.initial.append(Initial(Selection(None), "stretch", (np.array([1.0, 0, 0]), 1.3)))
+        sim = fem.Simulation(scene)
+        info = sim.step()
+        assert info["converged"], info
+        solutions[solver] = sim.velocities()
+    np.testing.assert_allclose(solutions["jacobi"], solutions["pcg"], atol=1e-6)
+
+
+def test_pinned_vertices_stay_put_and_gravity_pulls_the_rest(f64):
+    mesh = box_mesh(2)
+    top = np.flatnonzero(np.isclose(mesh.vertices[:, 1], 0.5))
+    scene = make_scene(mesh, "corotational", E=1e4, density=100.0, pinned=top,
+                       effects=Effects(gravity=(0.0, -9.81, 0.0)))
+    sim = fem.Simulation(scene)
+    x0 = sim.positions()
+    for _ in range(20):
+        sim.step()
+    x = sim.positions()
+    np.testing.assert_array_equal(x[top], x0[top])
+    assert (x[~np.isin(np.arange(len(x)), top), 1] < x0[~np.isin(np.arange(len(x)), top), 1]).all()
+
+
+def test_ground_stops_a_falling_body(f64):
+    scene = make_scene(box_mesh(2), "corotational", E=1e4, density=100.0, position=(0, 0.6, 0),
+                       effects=Effects(gravity=(0.0, -9.81, 0.0), ground=0.0))
+    sim = fem.Simulation(scene)
+    for _ in range(100):
+        sim.step()
+    assert sim.positions()[:, 1].min() >= 0.0
+    assert sim.positions()[:, 1].max() < 1.2
+
+
+def launches_per_step(scene, steps=5):
+    """{kernel name: launches} over `steps` steps after the first (Taichi's kernel profiler)."""
+    fem.init("cpu", "f64")
+    ti.init(arch=ti.cpu, default_fp=ti.f64, kernel_profiler=True, log_level=ti.ERROR)
+    sim = fem.Simulation(scene)
+    sim.step()
+    ti.profiler.clear_kernel_profiler_info()
+    for _ in range(steps):
+        sim.step()
+    names = ["extract_rotations", "build_preconditioner", "ground_contact", "elastic_forces",
+             "stiffness_product", "commit"]
+    counts = {n: ti.profiler.query_kernel_profiler_info(n).counter for n in names}
+    fem.init("cpu", "f64")
+    return counts
+
+
+def test_switched_off_effects_launch_no_work():
+    mesh = box_mesh(2)
+    linear = launches_per_step(make_scene(mesh, "linear"))
+    assert linear["extract_rotations"] == 0            # no corotational body: no rotation ever
+    assert linear["build_preconditioner"] == 0         # linear: built once, in the first step
+    assert linear["ground_contact"] == 0
+    assert linear["commit"] == 5
+    corot = launches_per_step(make_scene(mesh, "corotational"))
+    assert corot["extract_rotations"] == 5 and corot["build_preconditioner"] == 5
+    ground = launches_per_step(make_scene(mesh, "linear", position=(0, 1, 0),
+                                          effects=Effects(gravity=(0, -9.81, 0), ground=0.0)))
+    assert ground["ground_contact"] == 5
+    assert ground["elastic_forces"] == linear["elastic_forces"]   # gravity adds code, not launches
