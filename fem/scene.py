@@ -128,6 +128,36 @@ class Scene:
     impulses: list[Impulse] = field(default_factory=list)
     camera: dict | None = None          # {"eye": (3,), "target": (3,)}
 
+    def side_by_side(self, gap=0.5):
+        """The scene twice for comparison: bodies 0..k-1 linear on the left, k..2k-1 corotational on
+        the right (shifted along +x by the scene's width plus `gap` m), with the same initial
+        conditions and impulses. Body i and body i + k share local vertex numbering."""
+        lo = min(b.mesh.vertices[:, 0].min() for b in self.bodies)
+        hi = max(b.mesh.vertices[:, 0].max() for b in self.bodies)
+        shift = np.array([hi - lo + gap, 0.0, 0.0])
+        k = len(self.bodies)
+        bodies = [replace(b, name=f"{b.name} (linear)", method="linear") for b in self.bodies]
+        bodies += [replace(b, name=f"{b.name} (corotational)", method="corotational",
+                           mesh=TetMesh(b.mesh.vertices + shift, b.mesh.tets, b.mesh.source))
+                   for b in self.bodies]
+
+        def copies(sel):
+            right = replace(sel, body=None if sel.body is None else sel.body + k,
+                            sphere=None if sel.sphere is None else (sel.sphere[0] + shift, sel.sphere[1]),
+                            box=None if sel.box is None else (sel.box[0] + shift, sel.box[1] + shift))
+            return [sel, right]
+
+        initial = [replace(i, selection=c) for i in self.initial for c in copies(i.selection)]
+        impulses = [replace(i, selection=c) for i in self.impulses for c in copies(i.selection)]
+        camera = None
+        if self.camera is not None:   # same view direction, centred between the copies, backed off
+            target = np.asarray(self.camera["target"]) + shift / 2
+            offset = np.asarray(self.camera["eye"]) - self.camera["target"]
+            distance = np.linalg.norm(offset)
+            camera = {"eye": target + offset * (1 + shift[0] / max(distance, 1e-9)), "target": target}
+        return replace(self, name=f"{self.name} (linear vs corotational)", bodies=bodies,
+                       initial=initial, impulses=impulses, camera=camera)
+
     def with_method(self, method):
         """A copy with every body switched to `method` ("linear" | "corotational")."""
         bodies = [replace(b, method=method) for b in self.bodies]
