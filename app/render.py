@@ -149,19 +149,18 @@ def lights(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
 
 def build_frame(vertices, faces, colors, camera: Camera, ground_y, smooth: bool) -> Frame:
     """The bodies' surface plus the floor, as one list of triangles to draw."""
-    body = surface(vertices, faces, colors, smooth)
+    positions, normals, vertex_colors, triangles = surface(vertices, faces, colors, smooth)
     if ground_y is None:
         # A hair below the lowest vertex, so that resting bodies do not z-fight the floor.
-        ground_y = body[0][:, 1].min() - 1e-3 * np.linalg.norm(camera.eye - camera.target)
-    ground = floor(camera, ground_y)
-    offset = len(body[0])
+        ground_y = positions[:, 1].min() - 1e-3 * np.linalg.norm(camera.eye - camera.target)
+    floor_positions, floor_normals, floor_colors, floor_triangles = floor(camera, ground_y)
     light_positions, light_intensities = lights(camera)
     f32 = np.float32
     return Frame(
-        positions=np.concatenate([body[0], ground[0]]).astype(f32),
-        normals=np.concatenate([body[1], ground[1]]).astype(f32),
-        colors=np.concatenate([body[2], ground[2]]).astype(f32),
-        triangles=np.concatenate([body[3], ground[3] + offset]).astype(np.int32),
+        positions=np.concatenate([positions, floor_positions]).astype(f32),
+        normals=np.concatenate([normals, floor_normals]).astype(f32),
+        colors=np.concatenate([vertex_colors, floor_colors]).astype(f32),
+        triangles=np.concatenate([triangles, floor_triangles + len(positions)]).astype(np.int32),
         light_positions=light_positions.astype(f32),
         light_intensities=light_intensities.astype(f32),
     )
@@ -235,12 +234,12 @@ def make_renderer(kind: str, width: int, height: int, smooth: bool = True) -> Re
     renderer when no Vulkan driver works, saying so in one line on stderr.
     Taichi must already be initialised (the engine does it).
     """
+    # Imported here because both modules import this one.
+    from app.ggui_renderer import GGUIRenderer
     from app.software_renderer import SoftwareRenderer
 
     if kind == "software":
         return SoftwareRenderer(width, height, smooth)
-    from app.ggui_renderer import GGUIRenderer
-
     if kind == "ggui":
         return GGUIRenderer(width, height, smooth)
     if kind != "auto":
@@ -248,6 +247,8 @@ def make_renderer(kind: str, width: int, height: int, smooth: bool = True) -> Re
     try:
         with _silenced_stderr():
             return GGUIRenderer(width, height, smooth)
-    except RuntimeError as error:
+    # Whatever stops the window from opening (no driver, no GGUI in this Taichi build)
+    # means no GGUI on this machine.
+    except Exception as error:
         print(f"GGUI unavailable ({error}); using the software renderer", file=sys.stderr)
         return SoftwareRenderer(width, height, smooth)

@@ -23,9 +23,9 @@ DEPTH_LEVELS = 2**31 - 1  # depth is stored in the key's upper 32 bits
 NO_TRIANGLE = -1
 COVERAGE_TOLERANCE = 1e-5  # in barycentric units: shared edges leave no cracks
 
-mat4 = ti.types.matrix(4, 4, ti.f32)
-lights2 = ti.types.matrix(2, 3, ti.f32)
-vec2 = ti.types.vector(2, ti.f32)
+Mat4 = ti.types.matrix(4, 4, ti.f32)
+Vec2 = ti.types.vector(2, ti.f32)
+LightPositions = ti.types.matrix(2, 3, ti.f32)  # one light per row
 
 
 @ti.func
@@ -43,12 +43,12 @@ def barycentrics(a, b, c, p):
 
 @ti.kernel
 def project(positions: ti.template(), screen: ti.template(), count: ti.i32,
-            view_proj: mat4, width: ti.i32, height: ti.i32):
+            view_proj: Mat4, width: ti.i32, height: ti.i32):
     """screen[i] = (column, row, 1/w, w) of vertex i, with w its distance along
     the view direction (metres) and pixel centres at half-integers."""
     for i in range(count):
         clip = view_proj @ ti.Vector([positions[i].x, positions[i].y, positions[i].z, 1.0], ti.f32)
-        inv_w = 1.0 / clip.w if clip.w != 0 else 0.0
+        inv_w = 1.0 / clip.w  # inf for w = 0, but rasterise skips vertices that close
         column = (clip.x * inv_w + 1.0) * 0.5 * width
         row = (1.0 - clip.y * inv_w) * 0.5 * height
         screen[i] = ti.Vector([column, row, inv_w, clip.w], ti.f32)
@@ -62,13 +62,14 @@ def rasterise(screen: ti.template(), triangles: ti.template(), count: ti.i32,
     for t in range(count):
         a, b, c = screen[triangles[t][0]], screen[triangles[t][1]], screen[triangles[t][2]]
         area = edge(a, b, c)
+        # Skip triangles reaching behind the near plane, and degenerate ones (no area, no pixels).
         if ti.min(a.w, b.w, c.w) >= near and ti.abs(area) > 1e-12:
             x0 = ti.max(ti.cast(ti.floor(ti.min(a.x, b.x, c.x)), ti.i32), 0)
             x1 = ti.min(ti.cast(ti.ceil(ti.max(a.x, b.x, c.x)), ti.i32), width - 1)
             y0 = ti.max(ti.cast(ti.floor(ti.min(a.y, b.y, c.y)), ti.i32), 0)
             y1 = ti.min(ti.cast(ti.ceil(ti.max(a.y, b.y, c.y)), ti.i32), height - 1)
             for y, x in ti.ndrange((y0, y1 + 1), (x0, x1 + 1)):
-                weights = barycentrics(a.xy, b.xy, c.xy, vec2(x + 0.5, y + 0.5))
+                weights = barycentrics(a.xy, b.xy, c.xy, Vec2(x + 0.5, y + 0.5))
                 if weights.min() >= -COVERAGE_TOLERANCE:
                     # 1/w is affine in screen space, so it interpolates exactly.
                     inv_w = weights.dot(ti.Vector([a.z, b.z, c.z]))
@@ -81,7 +82,7 @@ def rasterise(screen: ti.template(), triangles: ti.template(), count: ti.i32,
 def shade(visible: ti.template(), screen: ti.template(), triangles: ti.template(),
           positions: ti.template(), normals: ti.template(), colors: ti.template(),
           backdrop: ti.template(), image: ti.template(),
-          light_positions: lights2, light_intensities: vec2):
+          light_positions: LightPositions, light_intensities: Vec2):
     """image[row, column] = lit colour of the visible triangle, or the backdrop."""
     for y, x in visible:
         key = visible[y, x]
@@ -90,7 +91,7 @@ def shade(visible: ti.template(), screen: ti.template(), triangles: ti.template(
             t = ti.cast(key & ti.i64(0xFFFFFFFF), ti.i32)
             i, j, k = triangles[t][0], triangles[t][1], triangles[t][2]
             a, b, c = screen[i], screen[j], screen[k]
-            weights = barycentrics(a.xy, b.xy, c.xy, vec2(x + 0.5, y + 0.5))
+            weights = barycentrics(a.xy, b.xy, c.xy, Vec2(x + 0.5, y + 0.5))
             # Perspective-correct weights: attributes are affine in 3D, not on screen.
             weights *= ti.Vector([a.z, b.z, c.z])
             weights /= weights.sum()

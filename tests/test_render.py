@@ -33,9 +33,13 @@ def reddish(image):
     return (rgb[..., 0] > rgb[..., 1] + 60) & (rgb[..., 0] > rgb[..., 2] + 60)
 
 
-def run_python(code, **env):
-    """Run code in a fresh interpreter (Taichi initialised there) from the repository root."""
-    return subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
+def run_python(code, cwd=REPO, **env):
+    """Run code in a fresh interpreter, with the repository importable.
+
+    GGUI leaves an imgui.ini in the working directory, so tests that open a
+    GGUI window run in a temporary one.
+    """
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True,
                           timeout=120, env={**os.environ, "PYTHONPATH": str(REPO), **env})
 
 
@@ -118,23 +122,38 @@ def test_flat_and_smooth_shading_differ_on_a_cube(software, cube_scene):
     assert not np.array_equal(flat, smooth)
 
 
-def vulkan_probe():
+def vulkan_probe(workdir):
     """None when a GGUI offscreen window opens in a fresh process, else why not."""
     probe = run_python("import taichi as ti; ti.init(arch=ti.cpu); "
-                       "ti.ui.Window('probe', (32, 32), show_window=False)")
+                       "ti.ui.Window('probe', (32, 32), show_window=False)", cwd=workdir)
     return None if probe.returncode == 0 else (probe.stderr.strip().splitlines() or ["crashed"])[-1]
 
 
-def test_ggui_cube_matches_the_software_picture(software, cube_scene):
-    reason = vulkan_probe()
+GGUI_AND_SOFTWARE = """
+import numpy as np, taichi as ti
+from app.camera import Camera
+from app.render import make_renderer
+ti.init(arch=ti.cpu)
+scene = np.load("scene.npz")
+camera = Camera(*scene["camera"][:3], near=scene["camera"][3, 0], far=scene["camera"][3, 1])
+for kind in ("ggui", "software"):
+    renderer = make_renderer(kind, {width}, {height})
+    np.save(kind, renderer.render(scene["vertices"], scene["faces"], scene["colors"], camera))
+"""
+
+
+def test_ggui_cube_matches_the_software_picture(cube_scene, tmp_path):
+    reason = vulkan_probe(tmp_path)
     if reason:
         pytest.skip(f"GGUI needs a working Vulkan driver (apt: libvulkan1 mesa-vulkan-drivers): {reason}")
     vertices, faces, colors, camera = cube_scene
-    ggui = make_renderer("ggui", WIDTH, HEIGHT)
-    image = ggui.render(vertices, faces, colors, camera)
+    camera_rows = [camera.eye, camera.target, camera.up, [camera.near, camera.far, 0.0]]
+    np.savez(tmp_path / "scene.npz", vertices=vertices, faces=faces, colors=colors, camera=camera_rows)
+    result = run_python(GGUI_AND_SOFTWARE.format(width=WIDTH, height=HEIGHT), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    image, reference = np.load(tmp_path / "ggui.npy"), np.load(tmp_path / "software.npy")
     assert image.shape == (HEIGHT, WIDTH, 3) and image.dtype == np.uint8
     assert reddish(image).sum() > 0.1 * WIDTH * HEIGHT
-    reference = software.render(vertices, faces, colors, camera)
     difference = np.abs(image.astype(int) - reference.astype(int)).max(axis=2)
     assert np.mean(difference > 16) < 0.01  # only a few edge pixels may differ
 
