@@ -1,0 +1,108 @@
+"""Where meshes come from: procedural generators, tet mesh files, surfaces.
+
+`build_mesh` turns the `mesh` table of a scene file into a `TetMesh`:
+
+    {generator = "box", size = [1, 1, 1], cells = [4, 4, 4]}   # see GENERATORS
+    {file = "meshes/part.mesh"}                                # a tet mesh file
+    {surface = "shapes/cup.obj", edge_length = 0.05}           # tetrahedralised, cached
+"""
+
+import difflib
+import inspect
+from pathlib import Path
+
+from fem.errors import FemError
+from fem.mesh import read_tet_mesh
+
+from assets.bunny import bunny
+from assets.generators import box, dome, statue
+from assets.tetrahedralize import tetrahedralize_surface
+
+GENERATORS = {"box": box, "dome": dome, "statue": statue, "bunny": bunny}
+
+SOURCES = ("generator", "file", "surface")
+
+
+def build_mesh(spec, base_dir, where):
+    """The `TetMesh` a scene's mesh table describes.
+
+    spec: the table (a dict) with exactly one of "generator", "file" or
+    "surface". base_dir: the folder relative paths start from (the scene
+    file's folder). where: the prefix for error messages, e.g.
+    "scenes/cube.toml: body 'soft'.mesh".
+    """
+    if not isinstance(spec, dict):
+        raise FemError(f"{where} must be a table, got {spec!r}")
+    given = [key for key in SOURCES if key in spec]
+    if len(given) != 1:
+        hint = _closest_hint(next(iter(spec), ""), SOURCES) if not given else ""
+        raise FemError(f"{where} needs exactly one of {', '.join(SOURCES)}, "
+                       f"got {', '.join(map(repr, spec)) or 'none'}{hint}")
+    try:
+        if given == ["generator"]:
+            return _from_generator(spec)
+        if given == ["file"]:
+            _check_keys(spec, {"file"}, "a file mesh")
+            return read_tet_mesh(_existing_path(spec["file"], base_dir, "file"))
+        _check_keys(spec, {"surface", "edge_length"}, "a surface mesh")
+        edge_length = _typed(spec.get("edge_length", 0.05), 0.05, "edge_length")
+        return tetrahedralize_surface(_existing_path(spec["surface"], base_dir, "surface"),
+                                      edge_length)
+    except FemError as error:
+        raise FemError(f"{where}: {error}") from None
+
+
+def _from_generator(spec):
+    name = spec["generator"]
+    if name not in GENERATORS:
+        raise FemError(f"unknown generator {name!r}{_closest_hint(str(name), GENERATORS)}; "
+                       f"known: {', '.join(GENERATORS)}")
+    generator = GENERATORS[name]
+    defaults = {parameter.name: parameter.default
+                for parameter in inspect.signature(generator).parameters.values()}
+    _check_keys(spec, {"generator", *defaults}, f"generator {name!r}")
+    params = {key: _typed(value, defaults[key], key)
+              for key, value in spec.items() if key != "generator"}
+    return generator(**params)
+
+
+def _check_keys(spec, allowed, what):
+    for key in spec:
+        if key not in allowed:
+            raise FemError(f"unknown parameter {key!r} for {what}"
+                           f"{_closest_hint(key, allowed)}; valid: {', '.join(sorted(allowed - {'generator'}))}")
+
+
+def _closest_hint(word, choices):
+    close = difflib.get_close_matches(word, list(choices), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _typed(value, default, key):
+    """`value` converted to the type of the parameter's default, or FemError.
+
+    Numbers: an int default wants an integer, a float default any number.
+    Tuples: the same number of entries, each checked against its default.
+    """
+    if isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)) or len(value) != len(default):
+            raise FemError(f"{key} must be a list of {len(default)} numbers, got {value!r}")
+        return tuple(_typed(v, d, f"{key}[{i}]") for i, (v, d) in enumerate(zip(value, default)))
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise FemError(f"{key} must be a number, got {value!r}")
+    if isinstance(default, int):
+        if not float(value).is_integer():
+            raise FemError(f"{key} must be an integer, got {value!r}")
+        return int(value)
+    return float(value)
+
+
+def _existing_path(value, base_dir, key):
+    if not isinstance(value, str) or not value:
+        raise FemError(f"{key} must be a path string, got {value!r}")
+    path = Path(value)
+    if not path.is_absolute():
+        path = Path(base_dir) / path
+    if not path.is_file():
+        raise FemError(f"{key} {value!r} not found (looked for {path})")
+    return path

@@ -1,0 +1,155 @@
+"""Closed surface (OBJ, STL, PLY) -> tet mesh, with wildmeshing and a cache.
+
+Tetrahedralising takes seconds, so the result is stored in a user cache
+directory, keyed by the input file's bytes and the parameters; later calls
+load it in milliseconds. The cache lives outside the repository: a mesh made
+from someone else's surface is never committed.
+"""
+
+import hashlib
+import importlib.util
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fem.errors import FemError
+from fem.mesh import prepare_mesh
+
+# Bump when the output for the same input changes (tool, options, file layout),
+# so old cache entries are no longer found.
+CACHE_FORMAT = "wildmeshing-0.4.1/v1"
+
+# True when the latest tetrahedralize_surface call was served from the cache.
+last_cache_hit = False
+
+
+def cache_dir():
+    """$FEM_CACHE_DIR if set, else $XDG_CACHE_HOME/softfem, else ~/.cache/softfem."""
+    if os.environ.get("FEM_CACHE_DIR"):
+        return Path(os.environ["FEM_CACHE_DIR"])
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "softfem"
+
+
+def tetrahedralize_surface(path, edge_length=0.05, progress=True):
+    """Tet mesh filling the closed triangle surface in `path`.
+
+    edge_length: the target tet edge length as a fraction of the surface's
+    bounding-box diagonal (wildmeshing's `edge_length_r`; 0.05 gives a few
+    thousand tets). Coordinates keep the file's units. progress: print what
+    is happening and how long it took to stderr when the cache is missed.
+    wildmeshing is not bit-for-bit repeatable between runs; the cache makes
+    repeated calls on one machine return the same mesh.
+    """
+    global last_cache_hit
+    path = Path(path)
+    if not (isinstance(edge_length, (int, float)) and 0 < edge_length <= 1):
+        raise FemError(f"{path}: edge_length must be a fraction in (0, 1] of the bounding-box "
+                       f"diagonal, got {edge_length!r}")
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise FemError(f"{path}: cannot read ({error.strerror})") from None
+
+    key = hashlib.sha256(data)
+    key.update(f"|{path.suffix.lower()}|edge_length={float(edge_length)!r}|{CACHE_FORMAT}"
+               .encode())
+    cached = cache_dir() / f"{key.hexdigest()}.npz"
+    source = f"{path} (tetrahedralised, edge_length={edge_length})"
+
+    arrays = _load_cached(cached)
+    last_cache_hit = arrays is not None
+    if arrays is None:
+        start = time.perf_counter()
+        vertices, faces = _load_surface(path)
+        if progress:
+            print(f"tetrahedralising {path.name} ({len(faces)} triangles) with wildmeshing, "
+                  f"edge length {edge_length} x bbox diagonal ...", file=sys.stderr, flush=True)
+        arrays = _run_wildmeshing(vertices, faces, edge_length, path)
+        _store(cached, arrays)
+        if progress:
+            print(f"  done in {time.perf_counter() - start:.1f} s: {len(arrays[1])} tets, "
+                  f"{len(arrays[0])} vertices; cached in {cached}", file=sys.stderr)
+    return prepare_mesh(*arrays, source)
+
+
+def _load_cached(cached):
+    """(vertices, tets) from a cache file, or None when it is absent or unreadable."""
+    try:
+        with np.load(cached) as data:
+            return data["vertices"], data["tets"]
+    # A damaged cache entry is rebuilt, not reported: the cache is disposable.
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def _store(cached, arrays):
+    """Write the cache entry atomically; a cache that cannot be written is only a warning."""
+    try:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=cached.parent, suffix=".tmp",
+                                         delete=False) as file:
+            np.savez(file, vertices=arrays[0], tets=arrays[1])
+        os.replace(file.name, cached)
+    except OSError as error:
+        print(f"warning: could not cache the tet mesh in {cached.parent}: {error}",
+              file=sys.stderr)
+
+
+def _load_surface(path):
+    """(n, 3) float64 vertices and (f, 3) int32 triangles of a surface file."""
+    import trimesh
+
+    try:
+        surface = trimesh.load(path, force="mesh")
+    # trimesh raises many types for unreadable files; each means "not a surface".
+    except Exception as error:
+        raise FemError(f"{path}: cannot read a surface ({type(error).__name__}: {error})") \
+            from None
+    faces = np.asarray(getattr(surface, "faces", np.zeros((0, 3))))
+    if faces.ndim != 2 or len(faces) == 0:
+        raise FemError(f"{path}: no triangles in the file")
+    vertices = np.asarray(surface.vertices, dtype=np.float64)
+    if not np.isfinite(vertices).all():
+        raise FemError(f"{path}: the surface has non-finite coordinates")
+    return vertices, faces.astype(np.int32)
+
+
+# Runs in a child process, in a temporary folder: wildmeshing prints its
+# progress on stdout (partly from a background thread) and writes
+# __tracked_surface.stl into the working directory, and a crash in the C++
+# code must not take the caller down with it.
+WILDMESHING_SCRIPT = """
+import sys
+import numpy as np
+import wildmeshing
+
+surface = np.load("surface.npz")
+tetrahedralizer = wildmeshing.Tetrahedralizer(edge_length_r=float(sys.argv[1]), max_threads=1)
+tetrahedralizer.set_mesh(surface["vertices"], surface["faces"])
+tetrahedralizer.tetrahedralize()
+vertices, tets = tetrahedralizer.get_tet_mesh()[:2]
+np.savez("tets.npz", vertices=vertices, tets=tets)
+"""
+
+
+def _run_wildmeshing(vertices, faces, edge_length, path):
+    """Tetrahedralise with wildmeshing in a child process; returns (vertices, tets)."""
+    if importlib.util.find_spec("wildmeshing") is None:
+        raise FemError(f"{path}: tetrahedralising a surface needs wildmeshing: "
+                       f"install it with `pip install wildmeshing`")
+    with tempfile.TemporaryDirectory() as work:
+        np.savez(Path(work) / "surface.npz", vertices=vertices, faces=faces)
+        result = subprocess.run([sys.executable, "-c", WILDMESHING_SCRIPT, str(edge_length)],
+                                cwd=work, capture_output=True, text=True)
+        if result.returncode != 0:
+            tail = (result.stderr or result.stdout).strip().splitlines()[-3:]
+            raise FemError(f"{path}: wildmeshing failed (exit code {result.returncode}): "
+                           f"{' | '.join(tail)}")
+        with np.load(Path(work) / "tets.npz") as output:
+            return output["vertices"].astype(np.float64), output["tets"].astype(np.int32)
