@@ -1,0 +1,71 @@
+"""Per-vertex colours of the bodies' surfaces: by body, by volume change or by strain energy.
+
+The engine measures per tet (`Simulation.tet_values`); a vertex shows the mean
+over the tets that share it, so colours vary smoothly over the surface. The
+scales are fixed for a whole run (not stretched to each frame's values), so
+equal colours mean equal values in every frame and in both copies of --compare.
+"""
+
+import numpy as np
+
+from app.overlay import body_colors, draw_legend, scalar_colors
+from app.render import nice_step
+
+MODES = ("body", "volume", "strain")
+
+# Volume ratio J = det F: halved (blue) .. unchanged (grey) .. 1.5 times (red); beyond clamps.
+VOLUME_RANGE = (0.5, 1.5)
+# The strain scale tops out at the energy density of this uniaxial strain in the stiffest body.
+REFERENCE_STRAIN = 0.05
+
+
+class VertexColoring:
+    """Colours (n, 3) in [0, 1] for every vertex of a simulation, and the legend that reads them.
+
+    mode: "body" (one palette colour per body), "volume" (volume ratio J,
+    diverging around 1) or "strain" (strain energy density, J/m^3, from 0).
+    """
+
+    def __init__(self, sim, mode: str):
+        if mode not in MODES:
+            raise ValueError(f"unknown colour mode {mode!r}: use one of {MODES}")
+        self.mode = mode
+        self.tets = sim.model.tets_np
+        self.tets_per_vertex = np.bincount(self.tets.ravel(), minlength=sim.model.n_vertices)
+        self.body = body_colors(sim.model.vertex_body)
+        if mode == "volume":
+            self.title, self.colormap = "volume ratio J = det F", "coolwarm"
+            self.vmin, self.vmax = VOLUME_RANGE
+        elif mode == "strain":
+            self.title, self.colormap = "strain energy density, J/m^3", "viridis"
+            self.vmin, self.vmax = 0.0, strain_energy_scale(sim.scene.bodies)
+
+    def colors(self, sim) -> np.ndarray:
+        """Colours (n, 3) of the simulation's vertices now."""
+        if self.mode == "body":
+            return self.body
+        volume_ratio, energy_density = sim.tet_values()
+        per_tet = volume_ratio if self.mode == "volume" else energy_density
+        return scalar_colors(self.vertex_mean(per_tet), self.vmin, self.vmax, self.colormap)
+
+    def vertex_mean(self, per_tet: np.ndarray) -> np.ndarray:
+        """Mean (n,) over the tets sharing each vertex of a per-tet value (m,)."""
+        sums = np.bincount(self.tets.ravel(), np.repeat(per_tet, 4), minlength=len(self.tets_per_vertex))
+        return sums / np.maximum(self.tets_per_vertex, 1)
+
+    def draw_legend(self, image: np.ndarray) -> np.ndarray:
+        """image (H, W, 3) uint8 with the colour bar of a scalar mode; unchanged for "body"."""
+        if self.mode == "body":
+            return image
+        return draw_legend(image, self.title, self.vmin, self.vmax, self.colormap)
+
+
+def strain_energy_scale(bodies) -> float:
+    """A round top for the strain energy scale (J/m^3): the energy density
+    (mu + lam/2) eps^2 of a uniaxial strain eps = REFERENCE_STRAIN in the stiffest body."""
+    def density(material):
+        E, nu = material.E, material.nu
+        mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+        return (mu + lam / 2) * REFERENCE_STRAIN**2
+
+    return nice_step(max(density(b.material) for b in bodies))
