@@ -1,0 +1,569 @@
+"""`main.py view`: the interactive window (Taichi GGUI).
+
+Poke a body with the mouse and watch linear FEM inflate as it turns while
+corotational FEM keeps its volume. The window only reads the engine's state
+and talks to it through its public calls: `apply_impulse`, `set_method`,
+`set_material`, `settings`, `reset`.
+
+One frame: read input -> step the simulation (real time when it keeps up) ->
+draw the bodies, the floor and the panel -> write a stats line.
+"""
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import taichi as ti
+
+import fem
+from app import orbit, picking
+from app.camera import Camera, auto_frame
+from app.files import atomic_open, atomic_path, refuse_overwrite
+from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
+from app.overlay import body_colors, scalar_colors
+from app.render import AMBIENT, FrameBuffers, background, build_frame
+
+PANEL_WIDTH = 0.29              # of the window's width, on the right
+MAX_STEPS_PER_FRAME = 8
+VIDEO_FPS = 30
+MARKER_SECONDS = 0.8            # how long a click's hit point and arrow stay drawn
+DRAG_PIXELS = 6                 # a press and release further apart than this is a drag
+VOLUME_RANGE = (0.8, 1.2)       # colour scale of the volume ratio J
+HELP = """\
+left click      push the body along the view ray
+left drag       push along the drag (longer = harder)
+right drag      orbit          wheel / up, down   zoom
+shift+right or middle drag    pan
+f   frame the scene again      c   linear <-> corotational
+space  pause     n  one step   r   reset the scene
+v   start/stop video (mp4)     p   screenshot (png)
+1-9 switch scene (or the panel's list)
+h   this help                  Esc quit"""
+
+
+@dataclass
+class Press:
+    """A left button press waiting for its release: where, and what it hit."""
+
+    pixel: np.ndarray
+    hit: picking.Hit | None
+
+
+def run(args) -> int:
+    fem.init(args.arch, args.precision, debug=args.debug)
+    width, height = parse_size(args.size)
+    if args.stats:
+        refuse_overwrite(args.stats, args.overwrite)
+    viewer = Viewer(args, width, height)
+    if args.stats:
+        with atomic_open(args.stats) as stats_file:
+            viewer.loop(stats_file)
+    else:
+        viewer.loop(None)
+    return 0
+
+
+def parse_size(text):
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise fem.FemError(f"--size: expected WIDTHxHEIGHT, e.g. 1280x720, got {text!r}") from None
+    if not (160 <= width <= 8192 and 120 <= height <= 8192):
+        raise fem.FemError(f"--size: {width}x{height} is out of range (160x120 to 8192x8192)")
+    return width, height
+
+
+def numbered_path(stem: str, suffix: str) -> Path:
+    """stem-001.suffix, stem-002.suffix, ...: the first name not taken in the current folder."""
+    for n in range(1, 10000):
+        path = Path(f"{stem}-{n:03d}{suffix}")
+        if not path.exists():
+            return path
+    raise fem.FemError(f"too many files named {stem}-NNN{suffix} here")
+
+
+class Viewer:
+    def __init__(self, args, width, height):
+        self.args, self.width, self.height = args, width, height
+        names = list(fem.builtin_scenes())
+        self.scene_refs = names if args.scene in names else [args.scene] + names
+        self.window = ti.ui.Window("softfem", (width, height), vsync=False)
+        self.canvas = self.window.get_canvas()
+        self.scene3d = self.window.get_scene()
+        self.ggui_camera = ti.ui.Camera()
+        self.gui = self.window.get_gui()
+        self.backdrop = ti.Vector.field(3, ti.f32, (width, height))
+        self.backdrop.from_numpy(_to_ggui_layout(background(width, height)))
+        self.buffers = FrameBuffers()
+        self.marker_point = ti.Vector.field(3, ti.f32, 1)
+        self.marker_arrow = ti.Vector.field(3, ti.f32, 6)
+        self.sim = None
+        self.paused = self.show_help = False
+        self.color_mode = "body"
+        self.events, self.frame = [], 0
+        self.fps, self.render_ms, self.steps_last_frame = 0.0, 0.0, 0
+        self.press, self.marker, self.marker_until = None, None, 0.0
+        self.drag_origin = None
+        self.screenshot_due, self.strain_max = False, 1.0
+        self.video, self.video_path, self.message = None, None, ""
+        self.load(args.scene)
+
+    # ------------------------------------------------------------ scenes
+
+    def load(self, ref):
+        """Build the simulation of a scene and compile its kernels before the first frame."""
+        self.show_loading(ref)
+        args = self.args
+        scene = fem.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None)
+        if args.compare:
+            scene = scene.side_by_side()
+        sim = fem.Simulation(scene, method=None if args.compare else args.method, solver=args.solver,
+                             dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters)
+        warm_up(sim)
+        self.sim, self.ref = sim, ref
+        model = sim.model
+        self.body_starts = np.array([b.vertices.start for b in model.bodies])
+        self.twins = len(model.bodies) // 2 if args.compare else 0
+        self.tet_count = np.bincount(model.tets_np.ravel(), minlength=model.n_vertices).clip(1)
+        self.x = sim.positions()
+        lo, hi = self.x.min(axis=0), self.x.max(axis=0)
+        self.size = float(np.linalg.norm(hi - lo))
+        self.strength = 1.0 * self.size        # m/s at the hit point
+        self.radius = 0.2 * self.size          # m
+        self.material_body = 0
+        self.material_edit = None
+        self.reset_view()
+        self.stats = sim.stats()
+        self.events.append({"type": "scene", "scene": str(ref), "name": scene.name,
+                            "methods": self.methods()})
+
+    def show_loading(self, ref):
+        """One frame saying what is loading, since building a scene takes a second or two."""
+        with self.gui.sub_window("softfem", 1 - PANEL_WIDTH, 0.0, PANEL_WIDTH, 0.2) as g:
+            g.text(f"loading {ref} ...")
+            g.text("(compiling kernels the first time)")
+        self.canvas.set_image(self.backdrop)
+        self.window.show()
+
+    def reset_view(self):
+        """Frame the bodies, looking along the scene's own camera direction when it has one,
+        and slide them left so the panel does not cover them."""
+        self.camera = initial_camera(self.x, self.sim.scene.camera, self.width, self.height)
+
+    def methods(self):
+        return [b.method for b in self.sim.scene.bodies]
+
+    # ------------------------------------------------------------ main loop
+
+    def loop(self, stats_file):
+        last = time.perf_counter()
+        while self.window.running:
+            now = time.perf_counter()
+            frame_seconds, last = now - last, now
+            if frame_seconds > 0:
+                self.fps = 0.9 * self.fps + 0.1 / frame_seconds if self.fps else 1 / frame_seconds
+            self.handle_keys()
+            self.handle_mouse()
+            if not self.window.running:
+                break
+            if not self.paused:
+                self.advance(frame_seconds)
+            self.stats = self.sim.stats()
+            self.draw()
+            if stats_file:
+                row = dict(self.stats, frame=self.frame, events=self.events)
+                stats_file.write(json.dumps(row) + "\n")
+            self.events = []
+            self.frame += 1
+        self.stop_video()
+
+    def advance(self, frame_seconds):
+        """Real time when the simulation keeps up (as many steps as the frame took), else one step."""
+        dt = self.sim.settings.dt
+        step_seconds = self.sim.last.get("wall_ms", 0.0) / 1e3
+        steps = 1
+        if step_seconds < dt:
+            steps = int(np.clip(round(frame_seconds / dt), 1, MAX_STEPS_PER_FRAME))
+        for _ in range(steps):
+            self.sim.step()
+        self.steps_last_frame = steps
+
+    # ------------------------------------------------------------ input
+
+    def handle_keys(self):
+        for event in self.window.get_events(ti.ui.PRESS):
+            key = event.key
+            if key == ti.ui.ESCAPE:
+                self.window.running = False
+            elif key == " ":
+                self.paused = not self.paused
+            elif key == "n":
+                self.paused = True
+                self.sim.step()
+            elif key == "r":
+                self.reset()
+            elif key == "c":
+                self.toggle_corotation()
+            elif key == "f":
+                self.reset_view()
+            elif key == "h":
+                self.show_help = not self.show_help
+            elif key == "p":
+                self.screenshot_due = True
+            elif key == "v":
+                self.toggle_video()
+            elif key == ti.ui.UP:
+                self.camera = orbit.zoom(self.camera, 0.9)
+            elif key == ti.ui.DOWN:
+                self.camera = orbit.zoom(self.camera, 1 / 0.9)
+            elif key == ti.ui.LMB and self.in_view():
+                pixel = self.cursor()
+                self.press = Press(pixel, self.pick(pixel))
+            elif key in (ti.ui.RMB, ti.ui.MMB):
+                self.drag_origin = self.cursor()
+        for event in self.window.get_events(ti.ui.RELEASE):
+            if event.key == ti.ui.LMB and self.press is not None:
+                self.release(self.cursor())
+
+    def handle_mouse(self):
+        """Right drag orbits; middle drag or shift + right drag pans."""
+        right = self.window.is_pressed(ti.ui.RMB)
+        middle = self.window.is_pressed(ti.ui.MMB)
+        if not (right or middle) or self.drag_origin is None:
+            self.drag_origin = None
+            return
+        pixel = self.cursor()
+        dx, dy = pixel - self.drag_origin
+        self.drag_origin = pixel
+        if middle or self.window.is_pressed(ti.ui.SHIFT):
+            self.camera = orbit.pan(self.camera, dx, dy, self.height)
+        elif self.window.is_pressed(ti.ui.CTRL):
+            self.camera = orbit.zoom(self.camera, float(np.exp(dy / 200)))
+        else:
+            self.camera = orbit.orbit(self.camera, dx, dy)
+
+    def cursor(self):
+        """The mouse position in pixels, (x right, y down) from the top-left corner."""
+        x, y = self.window.get_cursor_pos()
+        return np.array([x * self.width, (1.0 - y) * self.height])
+
+    def in_view(self):
+        """True when the cursor is over the 3D view, not over the panel or the help."""
+        x, _ = self.window.get_cursor_pos()
+        return x < 1 - PANEL_WIDTH and not self.show_help
+
+    def pick(self, pixel):
+        origin, direction = self.camera.ray(pixel[0], pixel[1], self.width, self.height)
+        return picking.pick(origin, direction, self.x, self.sim.model.surface)
+
+    def release(self, pixel):
+        """A click pushes along the view ray; a drag pushes along the drag, harder the longer it is."""
+        press, self.press = self.press, None
+        if press.hit is None:
+            return
+        drag = pixel - press.pixel
+        if np.linalg.norm(drag) <= DRAG_PIXELS:
+            direction = press.hit.point - self.camera.eye
+            strength = self.strength
+        else:
+            right, true_up, _ = self.camera.basis()
+            direction = drag[0] * right - drag[1] * true_up
+            strength = self.strength * min(np.linalg.norm(drag) / (0.2 * self.height), 4.0)
+        delta_v = strength * direction / np.linalg.norm(direction)
+        self.push(press.hit, delta_v)
+
+    def push(self, hit, delta_v):
+        """Push the hit body around the hit point; in compare mode its twin gets the same push."""
+        model = self.sim.model
+        body = int(model.vertex_body[hit.vertex])
+        span = model.bodies[body].vertices
+        ids, dv = picking.push(self.x, np.arange(span.start, span.stop), hit.point, self.radius, delta_v)
+        event = {"type": "click", "body": body, "hit_vertex": hit.vertex,
+                 "hit_point": hit.point.tolist(), "delta_v": np.asarray(delta_v).tolist(),
+                 "vertices": len(ids)}
+        if self.twins:
+            twin = (body + self.twins) % (2 * self.twins)
+            twin_ids = picking.mirrored(ids, self.body_starts, body, twin)
+            ids, dv = np.concatenate([ids, twin_ids]), np.concatenate([dv, dv])
+            event["twin_body"] = twin
+        self.sim.apply_impulse(ids, dv)
+        self.events.append(event)
+        self.marker = (hit.point, np.asarray(delta_v))
+        self.marker_until = time.perf_counter() + MARKER_SECONDS
+
+    # ------------------------------------------------------------ actions
+
+    def reset(self):
+        self.sim.reset()
+        self.events.append({"type": "reset"})
+
+    def toggle_corotation(self):
+        """Every body corotational, or (when they all are already) every body linear."""
+        all_corotational = all(m == "corotational" for m in self.methods())
+        self.set_methods(["linear" if all_corotational else "corotational"] * len(self.methods()))
+
+    def set_methods(self, methods):
+        for body, method in enumerate(methods):
+            if method != self.sim.scene.bodies[body].method:
+                self.sim.set_method(method, body)
+        self.events.append({"type": "methods", "methods": self.methods()})
+
+    def toggle_video(self):
+        if self.video is not None:
+            self.stop_video()
+            return
+        import imageio.v2 as imageio
+        self.video_path = numbered_path(f"softfem-{Path(str(self.ref)).stem}", ".mp4")
+        self.video = imageio.get_writer(atomic_path(self.video_path), fps=VIDEO_FPS, codec="libx264",
+                                        macro_block_size=16, quality=7)
+        self.message = f"recording {self.video_path}"
+        self.events.append({"type": "video", "recording": True, "path": str(self.video_path)})
+
+    def stop_video(self):
+        if self.video is None:
+            return
+        self.video.close()
+        atomic_path(self.video_path).replace(self.video_path)
+        self.message = f"saved {self.video_path}"
+        print(self.message)
+        self.events.append({"type": "video", "recording": False, "path": str(self.video_path)})
+        self.video = None
+
+    # ------------------------------------------------------------ drawing
+
+    def vertex_colors(self):
+        model = self.sim.model
+        if self.color_mode == "body":
+            bodies = model.vertex_body % self.twins if self.twins else model.vertex_body
+            return body_colors(bodies)
+        volume_ratio, energy_density = self.sim.tet_values()
+        per_tet = volume_ratio if self.color_mode == "volume" else energy_density
+        per_vertex = np.bincount(model.tets_np.ravel(), np.repeat(per_tet, 4),
+                                 minlength=model.n_vertices) / self.tet_count
+        if self.color_mode == "volume":
+            return scalar_colors(per_vertex, *VOLUME_RANGE, "coolwarm")
+        self.strain_max = max(float(np.percentile(per_tet, 99)), 1e-12)
+        return scalar_colors(per_vertex, 0.0, self.strain_max, "viridis")
+
+    def draw(self):
+        start = time.perf_counter()
+        self.x = self.sim.positions()
+        frame = build_frame(self.x, self.sim.model.surface, self.vertex_colors(), self.camera,
+                            ground_y=self.ground_y(), smooth=True)
+        self.buffers.upload(frame)
+        cam, g = self.camera, self.ggui_camera
+        g.position(*cam.eye)
+        g.lookat(*cam.target)
+        g.up(*cam.up)
+        g.fov(cam.fov_deg)
+        g.z_near(cam.near)
+        g.z_far(cam.far)
+        indices = np.ascontiguousarray(frame.triangles.ravel())   # GGUI reads it at show()
+        with _quiet_taichi():
+            self.canvas.set_image(self.backdrop)
+            self.scene3d.set_camera(g)
+            self.scene3d.ambient_light((AMBIENT,) * 3)
+            for position, intensity in zip(frame.light_positions, frame.light_intensities):
+                self.scene3d.point_light(tuple(position), (float(intensity),) * 3)
+            self.scene3d.mesh(self.buffers.positions, indices=indices, normals=self.buffers.normals,
+                              per_vertex_color=self.buffers.colors)
+            self.draw_marker()
+            self.canvas.scene(self.scene3d)
+            self.draw_panel()
+            if self.show_help:
+                self.draw_help()
+            if self.video is not None or self.screenshot_due:
+                self.capture()
+            self.window.show()
+        self.render_ms = 1e3 * (time.perf_counter() - start)
+
+    def ground_y(self):
+        ground = self.sim.scene.effects.ground
+        return ground if ground is not None else float(self.sim.model.rest_positions_np[:, 1].min()) - 0.01 * self.size
+
+    def draw_marker(self):
+        """The last click's hit point and its push as an arrow, or the drag in progress."""
+        if self.press is not None and self.press.hit is not None:
+            drag = self.cursor() - self.press.pixel
+            if np.linalg.norm(drag) > DRAG_PIXELS:
+                right, true_up, _ = self.camera.basis()
+                direction = drag[0] * right - drag[1] * true_up
+                strength = self.strength * min(np.linalg.norm(drag) / (0.2 * self.height), 4.0)
+                self.marker = (self.press.hit.point, strength * direction / np.linalg.norm(direction))
+                self.marker_until = time.perf_counter() + MARKER_SECONDS
+        if self.marker is None or time.perf_counter() > self.marker_until:
+            return
+        point, delta_v = self.marker
+        self.marker_point.from_numpy(point[None].astype(np.float32))
+        self.scene3d.particles(self.marker_point, radius=0.02 * self.size, color=(1.0, 0.85, 0.1))
+        self.marker_arrow.from_numpy(arrow(point, delta_v, 0.3 * self.size / max(self.strength, 1e-9),
+                                           self.camera).astype(np.float32))
+        self.scene3d.lines(self.marker_arrow, width=3, color=(1.0, 0.85, 0.1))
+
+    def capture(self):
+        rgba = self.window.get_image_buffer_as_numpy()
+        image = np.round(rgba[:, ::-1, :3].transpose(1, 0, 2) * 255).astype(np.uint8)
+        if self.video is not None:
+            self.video.append_data(image)
+        if self.screenshot_due:
+            from PIL import Image
+            path = numbered_path(f"softfem-{Path(str(self.ref)).stem}", ".png")
+            Image.fromarray(image).save(path)
+            self.message = f"saved {path}"
+            print(self.message)
+            self.events.append({"type": "screenshot", "path": str(path)})
+            self.screenshot_due = False
+
+    # ------------------------------------------------------------ panel
+
+    def draw_panel(self):
+        sim, s = self.sim, self.stats
+        with self.gui.sub_window("softfem", 1 - PANEL_WIDTH, 0.0, PANEL_WIDTH, 1.0) as g:
+            g.text(f"{sim.scene.name}")
+            g.text(f"{sim.model.n_tets} tets, {sim.model.n_vertices} vertices   [h] help")
+            if g.button("run" if self.paused else "pause"):
+                self.paused = not self.paused
+            if g.button("step"):
+                self.paused = True
+                sim.step()
+            if g.button("reset"):
+                self.reset()
+
+            g.text("")
+            g.text("Method  (c toggles all)")
+            all_corot = all(m == "corotational" for m in self.methods())
+            if g.checkbox("corotational (all bodies)", all_corot) != all_corot:
+                self.toggle_corotation()
+            methods = self.methods()
+            wanted = ["corotational" if g.checkbox(f"{i}: {b.name}", m == "corotational") else "linear"
+                      for i, (b, m) in enumerate(zip(sim.scene.bodies, methods))]
+            if wanted != methods:
+                self.set_methods(wanted)
+
+            g.text("")
+            g.text("Solver")
+            st = sim.settings
+            if g.button(f"solver: {st.method} (switch)"):
+                st.method = "jacobi" if st.method == "pcg" else "pcg"
+            exponent = g.slider_int("tolerance 1e-k", round(-np.log10(st.tolerance)), 1, 10)
+            st.tolerance = 10.0 ** -exponent
+            st.max_iterations = g.slider_int("max iterations", st.max_iterations, 1, 1000)
+            st.dt = max(g.slider_float("dt [s]", st.dt, 0.001, 0.05), 1e-4)
+            effects = sim.scene.effects
+            effects.alpha = g.slider_float("damping alpha", effects.alpha, 0.0, 2.0)
+            effects.beta = g.slider_float("damping beta", effects.beta, 0.0, 0.5)
+
+            self.draw_material(g)
+
+            g.text("")
+            g.text("Click impulse")
+            self.strength = g.slider_float("strength [m/s]", self.strength, 0.0, 5.0 * self.size)
+            self.radius = g.slider_float("radius [m]", self.radius, 0.01 * self.size, 0.5 * self.size)
+            g.text("")
+            g.text("Colour")
+            for mode in ("body", "volume", "strain"):
+                if g.checkbox(f"{mode}", self.color_mode == mode):
+                    self.color_mode = mode
+            if self.color_mode == "volume":
+                g.text(f"blue J={VOLUME_RANGE[0]}  grey 1  red J={VOLUME_RANGE[1]}")
+            elif self.color_mode == "strain":
+                g.text(f"energy density 0 .. {self.strain_max:.3g} J/m^3")
+
+            self.draw_stats(g, s)
+
+            g.text("")
+            g.text("Scenes")
+            for number, ref in enumerate(self.scene_refs[:9], start=1):
+                if g.button(f"{number} {Path(str(ref)).stem}"):
+                    self.switch_scene(ref)
+            if self.message:
+                g.text(self.message)
+
+    def draw_material(self, g):
+        """E and nu of one body, applied when the slider is let go (changing them rebuilds
+        the preconditioner, and each drag position would otherwise be a new material)."""
+        bodies = self.sim.scene.bodies
+        g.text("")
+        g.text("Material")
+        if len(bodies) > 1:
+            self.material_body = g.slider_int("body", self.material_body, 0, len(bodies) - 1)
+        material = bodies[self.material_body].material
+        body, E, nu = self.material_edit or (self.material_body, material.E, material.nu)
+        if body != self.material_body:
+            body, E, nu = self.material_body, material.E, material.nu
+        log_E = g.slider_float("log10 E [Pa]", float(np.log10(E)), 1.0, 8.0)
+        nu = g.slider_float("nu", nu, 0.0, 0.49)
+        E = 10.0 ** log_E
+        g.text(f"{bodies[body].name}: E = {E:.4g} Pa, nu = {nu:.3f}")
+        changed = not (np.isclose(E, material.E) and np.isclose(nu, material.nu))
+        self.material_edit = (body, E, nu) if changed else None
+        if changed and not self.window.is_pressed(ti.ui.LMB):
+            self.sim.set_material(body, E, nu)
+            self.events.append({"type": "material", "body": body, "E": E, "nu": nu})
+            self.material_edit = None
+
+    def draw_stats(self, g, s):
+        g.text("")
+        g.text("Numbers")
+        g.text(f"{self.fps:5.1f} fps, {self.steps_last_frame} step(s)/frame, t = {s['t']:.2f} s"
+               + ("  PAUSED" if self.paused else ""))
+        g.text(f"ms/step: rotations {s.get('rotation_ms', 0):.1f}, solve {s.get('solve_ms', 0):.1f}")
+        g.text(f"ms/frame rendering: {self.render_ms:.1f}")
+        residual = s.get("residual")
+        g.text(f"{s.get('solver', self.sim.settings.method)}: {s.get('solver_iters', 0)} iterations, "
+               f"residual {residual if residual is not None else float('nan'):.1e}"
+               + ("" if s.get("converged", True) else "  NOT CONVERGED"))
+        for body, ratio in zip(self.sim.scene.bodies, s["volume_ratio"]):
+            g.text(f"volume {100 * ratio:6.1f} %  {body.name}")
+        g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
+        g.text(f"inverted tets: {s['inverted_tets']}")
+
+    def draw_help(self):
+        lines = HELP.splitlines()
+        with self.gui.sub_window("help (h to close)", 0.05, 0.1, 0.6, 0.045 * len(lines) + 0.06) as g:
+            for line in lines:
+                g.text(line)
+
+    def switch_scene(self, ref):
+        self.stop_video()
+        self.load(ref)
+
+
+def initial_camera(positions, scene_camera, width, height) -> Camera:
+    """A camera framing positions (n, 3) in the part of a width x height window left of the
+    panel, looking along the scene's camera direction ({"eye", "target"} or None)."""
+    lo, hi = positions.min(axis=0), positions.max(axis=0)
+    direction = (np.asarray(scene_camera["eye"]) - scene_camera["target"]) if scene_camera else (1.0, 0.6, 1.6)
+    camera = auto_frame(lo, hi, direction=direction, aspect=width * (1 - PANEL_WIDTH) / height)
+    # Sliding the camera right moves the scene left, to the middle of the uncovered part.
+    return orbit.pan(camera, -PANEL_WIDTH * width / 2, 0.0, height)
+
+
+def warm_up(sim):
+    """Compile every kernel the window may need (both methods, the stats) now,
+    so that toggling corotation later does not stall a frame; then start over."""
+    methods = [b.method for b in sim.scene.bodies]
+    for method in ("corotational", "linear"):
+        sim.set_method(method)
+        sim.step()
+    sim.stats()
+    sim.tet_values()
+    for body, method in enumerate(methods):
+        sim.set_method(method, body)
+    sim.reset()
+
+
+def arrow(point, delta_v, metres_per_mps, camera: Camera):
+    """Line segments (6, 3) of an arrow ending at `point` and pointing along delta_v,
+    the way the push goes; its length is |delta_v| * metres_per_mps."""
+    length = np.linalg.norm(delta_v) * metres_per_mps
+    direction = delta_v / max(np.linalg.norm(delta_v), 1e-12)
+    tail = point - length * direction
+    side = np.cross(direction, camera.eye - point)
+    side = side / max(np.linalg.norm(side), 1e-12)
+    head = 0.25 * length
+    return np.array([tail, point,
+                     point, point - head * direction + 0.5 * head * side,
+                     point, point - head * direction - 0.5 * head * side])
