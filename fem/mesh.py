@@ -64,6 +64,11 @@ def dihedral_angles(vertices, tets):
     between their outward normals. A degenerate tet gives NaN.
     """
     x = np.asarray(vertices, dtype=np.float64)[np.asarray(tets)]
+    # Angles do not change with scale: bring each tet to unit size so that
+    # products of edge vectors neither overflow nor underflow.
+    x = x - x[:, 3:4]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x /= np.abs(x).max(axis=(1, 2), keepdims=True)
     face = x[:, OUTWARD_FACES]                                   # (m, 4, 3, 3)
     normals = np.cross(face[:, :, 1] - face[:, :, 0], face[:, :, 2] - face[:, :, 0])
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -104,7 +109,8 @@ def prepare_mesh(vertices, tets, source, *, tet_lines=None):
     if len(bad_vertex):
         raise FemError(f"{source}: vertex {bad_vertex[0]} has a non-finite coordinate")
 
-    if tets.dtype.kind == "f" and np.isfinite(tets).all() and (tets == np.round(tets)).all():
+    whole = tets.dtype.kind == "f" and np.isfinite(tets).all() and (tets == np.round(tets)).all()
+    if whole and (np.abs(tets) < 2**31).all():
         tets = tets.astype(np.int64)
     if tets.dtype.kind not in "iu":
         raise FemError(f"{source}: tet vertex indices must be integers, got {tets.dtype}")
@@ -112,7 +118,7 @@ def prepare_mesh(vertices, tets, source, *, tet_lines=None):
     out_of_range = np.flatnonzero(((tets < 0) | (tets >= n)).any(axis=1))
     if len(out_of_range):
         t = out_of_range[0]
-        raise FemError(f"{where(t)} refers to vertex {tets[t].tolist()}, "
+        raise FemError(f"{where(t)} refers to vertices {tets[t].tolist()}, "
                        f"but the valid indices are 0..{n - 1}")
     tets = tets.astype(np.int32)
 
@@ -122,9 +128,15 @@ def prepare_mesh(vertices, tets, source, *, tet_lines=None):
         t = repeated[0]
         raise FemError(f"{where(t)} repeats a vertex: {tets[t].tolist()}")
 
-    volumes = signed_volumes(vertices, tets)
-    diagonal = np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0))
-    degenerate = np.flatnonzero(np.abs(volumes) <= VOLUME_TOLERANCE * diagonal**3)
+    with np.errstate(over="ignore", invalid="ignore"):
+        volumes = signed_volumes(vertices, tets)
+        diagonal = np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0))
+        tolerance = VOLUME_TOLERANCE * diagonal**3
+    overflow = np.flatnonzero(~np.isfinite(volumes))
+    if len(overflow) or not np.isfinite(tolerance):
+        t = overflow[0] if len(overflow) else 0
+        raise FemError(f"{where(t)}: coordinates too large to compute its volume")
+    degenerate = np.flatnonzero(np.abs(volumes) <= tolerance)
     if len(degenerate):
         t = degenerate[0]
         raise FemError(f"{where(t)} (vertices {tets[t].tolist()}) has near-zero volume "
@@ -278,18 +290,19 @@ def _read_medit(path):
     def read_rows(keyword_at, what, width, convert):
         """`count` rows of at least `width` values after the keyword; returns (rows, row lines, next)."""
         keyword = lines[keyword_at][1][0]
+        whats = "vertices" if what == "vertex" else f"{what}s"
         count, at = read_count(keyword_at)
         rows, row_lines = [], []
         for k in range(count):
             if at + k >= len(lines):
                 raise FemError(f"{name}:{lines[keyword_at][0]}: {keyword} says {count} "
-                               f"{what}s but the file ends after {k}")
+                               f"{whats} but the file ends after {k}")
             number, tokens = lines[at + k]
             try:
                 values = [convert(token) for token in tokens[:width]]
             except ValueError as error:
                 if _is_keyword(tokens[0]):
-                    raise FemError(f"{name}:{number}: {keyword} says {count} {what}s but "
+                    raise FemError(f"{name}:{number}: {keyword} says {count} {whats} but "
                                    f"{tokens[0]!r} starts after {k}") from None
                 raise FemError(f"{name}:{number}: {what} {k} {error}") from None
             if len(values) < width:

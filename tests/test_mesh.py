@@ -172,7 +172,7 @@ BAD_FILES = {
     "truncated": (CUBE_MEDIT[:CUBE_MEDIT.index("4 2 3 8")],
                   r"bad\.mesh:18: TETRAHEDRA says 5 tets but the file ends after 1"),
     "vertex count too large": (replace_line(CUBE_MEDIT, 5, "9"),
-                               r"bad\.mesh:14: Vertices says 9 vertexs but 'Triangles'"),
+                               r"bad\.mesh:14: Vertices says 9 vertices but 'Triangles'"),
     "vertex count too small": (replace_line(CUBE_MEDIT, 5, "7"),
                                r"bad\.mesh:13: expected a keyword"),
     "index out of range": (replace_line(CUBE_MEDIT, 20, "1 2 3 9 0"),
