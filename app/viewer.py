@@ -175,6 +175,7 @@ class Viewer:
             if stats_file:
                 row = dict(self.stats, frame=self.frame, events=self.events)
                 stats_file.write(json.dumps(row) + "\n")
+                stats_file.flush()   # a reader (or a test) can follow the frames as they come
             self.events = []
             self.frame += 1
         self.stop_video()

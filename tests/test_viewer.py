@@ -1,0 +1,228 @@
+"""The interactive window: picking and pushing (pure numpy), camera moves, and the
+real window under a virtual X display, driven with xdotool."""
+
+import ctypes.util
+import glob
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from app import orbit, picking
+from app.camera import Camera
+
+# Two unit squares facing +z, one at z = 0 and one behind it at z = -1, as triangles.
+SQUARE = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], float)
+TWO_SQUARES = np.concatenate([SQUARE, SQUARE + [0, 0, -1]])
+TRIANGLES = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+
+
+# ---------------------------------------------------------------- picking
+
+def test_ray_hits_the_triangle_it_points_at():
+    hit = picking.pick([0.2, 0.1, 5.0], [0, 0, -1.0], SQUARE, TRIANGLES[:2])
+    assert hit is not None
+    np.testing.assert_allclose(hit.point, [0.2, 0.1, 0.0], atol=1e-12)
+    assert hit.distance == pytest.approx(5.0)
+    assert hit.triangle == 0          # x > y: the lower-right triangle (0, 1, 2)
+    assert hit.vertex == 2            # (0.5, 0.5) is the nearest corner of that triangle
+
+
+def test_ray_that_misses_hits_nothing():
+    assert picking.pick([2.0, 0.0, 5.0], [0, 0, -1.0], SQUARE, TRIANGLES[:2]) is None
+    # pointing away from the square: the triangle is behind the origin
+    assert picking.pick([0.0, 0.0, 5.0], [0, 0, 1.0], SQUARE, TRIANGLES[:2]) is None
+    # parallel to the square's plane
+    assert picking.pick([-2.0, 0.0, 0.5], [1.0, 0, 0], SQUARE, TRIANGLES[:2]) is None
+
+
+def test_nearest_of_two_bodies_wins_from_either_side():
+    front = picking.pick([0.1, 0.1, 5.0], [0, 0, -1.0], TWO_SQUARES, TRIANGLES)
+    assert front.triangle in (0, 1) and front.point[2] == pytest.approx(0.0)
+    back = picking.pick([0.1, 0.1, -5.0], [0, 0, 1.0], TWO_SQUARES, TRIANGLES)
+    assert back.triangle in (2, 3) and back.point[2] == pytest.approx(-1.0)
+    assert back.distance == pytest.approx(4.0)
+
+
+def test_distances_of_every_triangle_at_once():
+    d = picking.ray_triangle_distances([-0.1, 0.1, 2.0], [0, 0, -1.0], TWO_SQUARES, TRIANGLES)
+    assert d.shape == (4,)
+    assert np.isinf(d[[0, 2]]).all()             # the ray passes through triangles 1 and 3 (y > x)
+    np.testing.assert_allclose(d[[1, 3]], [2.0, 3.0])
+
+
+# ---------------------------------------------------------------- impulse falloff
+
+def test_falloff_is_one_at_the_hit_and_fades_smoothly_to_zero_at_the_radius():
+    r = 0.5
+    d = np.linspace(0.0, 1.0, 201)
+    w = picking.falloff(d, r)
+    assert w[0] == 1.0
+    assert (w[d >= r] == 0).all()
+    assert (np.diff(w) <= 0).all()                # never grows with distance
+    h = 1e-6                                      # no kink at either end: zero slope
+    assert abs(picking.falloff(h, r) - 1.0) / h < 1e-4
+    assert abs(picking.falloff(r - h, r)) / h < 1e-4
+    assert picking.falloff(r / 2, r) == pytest.approx(0.75 ** 2)
+
+
+def test_push_reaches_only_vertices_within_the_radius():
+    positions = np.array([[0, 0, 0], [0.1, 0, 0], [0.3, 0, 0], [1.0, 0, 0], [0.05, 0, 0]], float)
+    ids, dv = picking.push(positions, [0, 1, 2, 3], [0, 0, 0], radius=0.5, delta_v=[0, 0, -2.0])
+    assert ids.tolist() == [0, 1, 2]              # 3 is too far, 4 is not a candidate
+    np.testing.assert_allclose(dv[:, 2], -2.0 * picking.falloff([0, 0.1, 0.3], 0.5))
+    np.testing.assert_allclose(dv[:, :2], 0.0)
+
+
+def test_mirrored_ids_are_the_same_local_vertices_of_the_twin():
+    starts = np.array([0, 10, 25, 35])            # bodies 0, 1 linear; 2, 3 their corotational twins
+    np.testing.assert_array_equal(picking.mirrored([12, 14], starts, 1, 3), [37, 39])
+    np.testing.assert_array_equal(picking.mirrored([27], starts, 2, 0), [2])
+
+
+# ---------------------------------------------------------------- camera moves
+
+def camera():
+    return Camera(eye=[0.0, 1.0, 5.0], target=[0.0, 1.0, 0.0], fov_deg=45.0, near=0.1, far=100.0)
+
+
+def test_orbit_keeps_the_distance_and_the_target():
+    moved = orbit.orbit(camera(), 150, -40)
+    np.testing.assert_allclose(moved.target, camera().target)
+    assert np.linalg.norm(moved.eye - moved.target) == pytest.approx(5.0)
+    assert moved.eye[1] < 1.0                      # dragged up: the eye goes below
+    assert orbit.orbit(camera(), 0, 1e4).eye[1] < 1.0 + 5.0   # clamped short of the pole
+
+
+def test_pan_moves_eye_and_target_together_in_the_image_plane():
+    moved = orbit.pan(camera(), 100, 0, height=500)
+    shift = moved.eye - camera().eye
+    np.testing.assert_allclose(moved.target - camera().target, shift)
+    assert shift[0] < 0 and abs(shift[1]) < 1e-12 and abs(shift[2]) < 1e-12
+
+
+def test_zoom_scales_the_distance_and_the_clip_planes():
+    moved = orbit.zoom(camera(), 0.5)
+    assert np.linalg.norm(moved.eye - moved.target) == pytest.approx(2.5)
+    assert (moved.near, moved.far) == pytest.approx((0.05, 50.0))
+
+
+# ---------------------------------------------------------------- the real window
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+WIDTH, HEIGHT = 640, 480
+
+
+def missing_tools():
+    """Why the window cannot be tested here, or None."""
+    for tool in ("Xvfb", "xdotool", "import"):
+        if shutil.which(tool) is None:
+            return f"{tool} not installed (apt-get install xvfb xdotool imagemagick)"
+    if ctypes.util.find_library("vulkan") is None:
+        return "no Vulkan loader (apt-get install libvulkan1 mesa-vulkan-drivers)"
+    icds = glob.glob("/usr/share/vulkan/icd.d/*.json") + glob.glob("/etc/vulkan/icd.d/*.json")
+    if not icds:
+        return "no Vulkan driver (apt-get install mesa-vulkan-drivers)"
+    return None
+
+
+@pytest.fixture
+def display():
+    """A fresh virtual X display (Xvfb picks a free number); yields its DISPLAY value."""
+    reason = missing_tools()
+    if reason:
+        pytest.skip(reason)
+    read, write = os.pipe()
+    server = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", f"{WIDTH}x{HEIGHT}x24",
+                               "-nolisten", "tcp"], pass_fds=[write],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(write)
+    with os.fdopen(read) as f:
+        number = f.readline().strip()
+    if not number:
+        server.kill()
+        pytest.skip("Xvfb did not start")
+    yield f":{number}"
+    server.terminate()
+    server.wait(10)
+
+
+def xdotool(env, *args, timeout=60):
+    return subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True,
+                          timeout=timeout, check=True).stdout
+
+
+def pixel_of(point, camera_):
+    """Window pixel (x right, y down) where a world point appears."""
+    clip = camera_.view_proj(WIDTH / HEIGHT) @ np.append(point, 1.0)
+    ndc = clip[:2] / clip[3]
+    return round((ndc[0] + 1) / 2 * WIDTH), round((1 - ndc[1]) / 2 * HEIGHT)
+
+
+def wait_for(condition, timeout, what):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def test_click_pushes_the_body_and_c_flips_the_method(display, cggs, tmp_path):
+    import fem
+    from app.viewer import initial_camera
+    from PIL import Image
+
+    scene_file = cggs / "cylinder-scene.txt"
+    scene = fem.load_scene(scene_file)      # nothing moves in it until clicked
+    body = scene.bodies[1].mesh.vertices
+    rest = np.concatenate([b.mesh.vertices for b in scene.bodies])
+    target = pixel_of(body.mean(axis=0), initial_camera(rest, scene.camera, WIDTH, HEIGHT))
+
+    env = dict(os.environ, DISPLAY=display)
+    stats = tmp_path / "s.jsonl"
+    log = open(tmp_path / "view.log", "w")
+    window = subprocess.Popen([sys.executable, os.path.join(ROOT, "main.py"), "view", str(scene_file),
+                               "--stats", str(stats), "--size", f"{WIDTH}x{HEIGHT}"],
+                              cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        wid = xdotool(env, "search", "--sync", "--onlyvisible", "--name", "softfem").split()[0]
+        # The stats file streams into a temporary name until the window closes.
+        wait_for(lambda: any(p.stat().st_size > 0 for p in tmp_path.glob(".s.jsonl.*.part")),
+                 60, "the first frames of the loaded scene")
+        xdotool(env, "mousemove", "--window", wid, str(target[0]), str(target[1]), "click", "1")
+        time.sleep(2.0)
+        xdotool(env, "key", "--window", wid, "c")
+        time.sleep(2.0)
+        subprocess.run(["import", "-window", "root", str(tmp_path / "shot.png")], env=env,
+                       check=True, timeout=30)
+        xdotool(env, "key", "--window", wid, "Escape")
+        assert window.wait(30) == 0, (tmp_path / "view.log").read_text()
+    finally:
+        if window.poll() is None:
+            window.kill()
+        log.close()
+
+    shot = np.asarray(Image.open(tmp_path / "shot.png").convert("RGB"), float)
+    assert shot.std() > 10, "the screenshot is blank"
+
+    rows = [json.loads(line) for line in stats.read_text().splitlines()]
+    events = [(row["frame"], e) for row in rows for e in row["events"]]
+    clicks = [(frame, e) for frame, e in events if e["type"] == "click"]
+    assert len(clicks) == 1, f"the click at {target} did not hit a body: {events}"
+    click_frame, click = clicks[0]
+    assert click["body"] == 1 and click["vertices"] > 0
+    before = [r["kinetic_energy"] for r in rows if r["frame"] < click_frame]
+    after = [r["kinetic_energy"] for r in rows if r["frame"] > click_frame]
+    assert before and max(before) < 1e-9          # at rest, up to rounding
+    assert max(after) > 1e-3
+
+    toggles = [e for _, e in events if e["type"] == "methods"]
+    assert toggles and toggles[-1]["methods"] == ["linear", "linear"]
+    stepped = [r["corotational"] for r in rows if "corotational" in r]
+    assert stepped[0] == [True, True] and stepped[-1] == [False, False]
