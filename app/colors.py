@@ -24,15 +24,17 @@ class VertexColoring:
 
     mode: "body" (one palette colour per body), "volume" (volume ratio J,
     diverging around 1) or "strain" (strain energy density, J/m^3, from 0).
+    copies: how many times the scene's bodies repeat in the simulation (2 for
+    Scene.side_by_side); every copy of a body gets that body's colour.
     """
 
-    def __init__(self, sim, mode: str):
+    def __init__(self, sim, mode: str, copies: int = 1):
         if mode not in MODES:
             raise ValueError(f"unknown colour mode {mode!r}: use one of {MODES}")
         self.mode = mode
         self.tets = sim.model.tets_np
         self.tets_per_vertex = np.bincount(self.tets.ravel(), minlength=sim.model.n_vertices)
-        self.body = body_colors(sim.model.vertex_body)
+        self.body = body_colors(sim.model.vertex_body % (len(sim.model.bodies) // copies))
         if mode == "volume":
             self.title, self.colormap = "volume ratio J = det F", "coolwarm"
             self.vmin, self.vmax = VOLUME_RANGE

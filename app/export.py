@@ -5,7 +5,9 @@
 Frame 0 is the initial state; each later frame comes `steps_per_frame` time
 steps after the one before. The camera and the floor stay fixed for the whole
 export (the scene's camera hint, or framed on the initial state with room to
-deform), so frames can be compared with each other.
+deform), so frames can be compared with each other. --compare shows two
+panels, like a report's figure: the linear copy on the left and the
+corotational copy on the right, each seen by the same camera.
 
 Reproducible pictures: the engine and the software renderer are deterministic
 on the CPU, so the PNGs depend only on the scene and the arguments. Their
@@ -26,6 +28,7 @@ import signal
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import imageio.v2
@@ -48,15 +51,29 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 MACRO_BLOCK = 16
 # Room around the initial state, as a fraction of its largest extent, for bodies to deform into.
 FRAMING_MARGIN = 0.25
-# --compare: the gap between the copies, as a fraction of the scene's width, so
-# that a linear copy inflating by half its width still does not reach the other.
-COMPARE_GAP = 1.0
-GROUP_NAMES = ("linear", "corotational")
+# From the scene's centre towards an auto-framed camera: in front, to the right and above.
+VIEW_DIRECTION = (1.0, 0.6, 1.6)
+DIVIDER_COLOR = (40, 44, 52)
+DIVIDER_WIDTH = 2  # pixels
+
+
+@dataclass
+class Panel:
+    """One picture in a frame: some bodies' surface, moved by offset, drawn at a given width.
+
+    faces (k, 3) global vertex ids of the surface triangles; offset (3,) m,
+    added to every position; label: text over the picture, or None.
+    """
+
+    faces: np.ndarray
+    offset: np.ndarray
+    width: int
+    label: str | None = None
 
 
 def run(args) -> int:
     """Export frames (and a video) as the parsed command line `args` asks; returns the exit code."""
-    width, height = frame_size(args.size, rounded=args.video is not None)
+    width, height = frame_size(args.size, MACRO_BLOCK if args.video else 2 if args.compare else 1)
     out = Path(args.out)
     video = Path(args.video) if args.video else None
     check_arguments(args, out, video)
@@ -66,23 +83,29 @@ def run(args) -> int:
 
     fem.init(args.arch, args.precision, debug=args.debug)
     scene = fem.load_scene(args.scene, overrides=args.set)
-    if args.compare:
-        scene = scene.side_by_side(gap=COMPARE_GAP * scene_width(scene))
-    sim = fem.Simulation(scene, method=args.method, solver=args.solver, dt=args.dt,
-                         tolerance=args.tol, max_iterations=args.max_iters)
+    sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
+                         solver=args.solver, dt=args.dt, tolerance=args.tol,
+                         max_iterations=args.max_iters)
     steps = steps_per_frame(args.steps_per_frame, args.fps, sim.settings.dt)
+    panels = compare_panels(sim, width) if args.compare else [
+        Panel(sim.model.surface, np.zeros(3), width)]
     try:
-        renderer = make_renderer(args.renderer, width, height)
+        renderer = make_renderer(args.renderer, panels[0].width, height)
     except RuntimeError as error:   # --renderer ggui without a working Vulkan driver
-        raise fem.FemError(f"--renderer {args.renderer}: {error} (--renderer software needs no Vulkan)") from None
+        raise fem.FemError(f"--renderer {args.renderer}: {error} "
+                           "(--renderer software needs no Vulkan)") from None
 
-    initial = sim.positions()
-    camera = fixed_camera(scene.camera, initial, width / height)
-    pad = FRAMING_MARGIN * np.ptp(initial, axis=0).max()
-    ground_y = scene.effects.ground if scene.effects.ground is not None else initial[:, 1].min() - pad
-    coloring = VertexColoring(sim, args.color)
-    labels = group_labels(sim.model, initial, camera, width, height) if args.compare else []
-    caption = caption_lines(scene, sim, args.compare)
+    # Framed on the first panel's bodies: the others are copies of them, moved onto them.
+    initial = sim.positions()[np.unique(panels[0].faces)]
+    aspect = panels[0].width / height
+    camera = (auto_framed(initial, aspect, scene.camera) if args.compare or scene.camera is None
+              else hinted(scene.camera))
+    if scene.effects.ground is not None:
+        ground_y = scene.effects.ground
+    else:   # for scale only: just below the initial state, where it stays
+        ground_y = initial[:, 1].min() - FRAMING_MARGIN * np.ptp(initial, axis=0).max()
+    coloring = VertexColoring(sim, args.color, copies=2 if args.compare else 1)
+    caption = caption_lines(sim.scene, args.compare)
 
     out.mkdir(parents=True, exist_ok=True)
     timings = {"step": [], "simulation": [], "rendering": [], "writing": []}
@@ -91,21 +114,19 @@ def run(args) -> int:
         for index in range(args.frames):
             start = time.perf_counter()
             if index > 0:
-                step_ms = [sim.step()["wall_ms"] for _ in range(steps)]
-                timings["step"].append(statistics.mean(step_ms))
+                timings["step"].append(statistics.mean(sim.step()["wall_ms"] for _ in range(steps)))
             simulated = time.perf_counter()
-            image = renderer.render(sim.positions(), sim.model.surface, coloring.colors(sim),
-                                    camera, ground_y)
+            positions, colors = sim.positions(), coloring.colors(sim)
+            pictures = [renderer.render(positions + p.offset, p.faces, colors, camera, ground_y)
+                        for p in panels]
             rendered = time.perf_counter()
 
+            picture = coloring.draw_legend(join_panels(pictures, panels))
             lines = caption + [f"t = {sim.t:.2f} s   ({steps} x {sim.settings.dt:g} s steps/frame)"]
-            image = coloring.draw_legend(draw_text_overlay(image, lines, corner="bottom-left"))
-            for text, centre in labels:
-                image = draw_label(image, text, centre)
-            write_png(out / FRAME_NAME.format(index), image)
+            write_png(out / FRAME_NAME.format(index), draw_text_overlay(picture, lines, "bottom-left"))
             if writer.active:
                 speed = timing_line(timings["step"], 1e3 * (rendered - simulated), renderer.name)
-                writer.append(draw_text_overlay(image, lines + [speed], corner="bottom-left"))
+                writer.append(draw_text_overlay(picture, lines + [speed], "bottom-left"))
 
             timings["simulation"].append(1e3 * (simulated - start))
             timings["rendering"].append(1e3 * (rendered - simulated))
@@ -122,18 +143,17 @@ def run(args) -> int:
 
 # ---------------------------------------------------------------- arguments
 
-def frame_size(text: str, rounded: bool) -> tuple[int, int]:
-    """(width, height) in pixels from "WxH"; rounded to multiples of 16 for a video, saying so."""
+def frame_size(text: str, multiple: int) -> tuple[int, int]:
+    """(width, height) in pixels from "WxH", rounded to a multiple (16 for a video,
+    2 for two equal panels), saying so when that changes them."""
     match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
     if not match or min(int(match[1]), int(match[2])) < MACRO_BLOCK:
         raise fem.FemError(f"--size: expected WIDTHxHEIGHT of at least {MACRO_BLOCK}x{MACRO_BLOCK} "
                            f"pixels, e.g. 640x480, got {text!r}")
     width, height = int(match[1]), int(match[2])
-    if not rounded:
-        return width, height
-    w, h = (MACRO_BLOCK * round(n / MACRO_BLOCK) for n in (width, height))
+    w, h = (multiple * round(n / multiple) for n in (width, height))
     if (w, h) != (width, height):
-        print(f"--size {width}x{height}: video frames must be multiples of {MACRO_BLOCK} pixels; "
+        print(f"--size {width}x{height}: frames must be multiples of {multiple} pixels here; "
               f"using {w}x{h}", file=sys.stderr)
     return w, h
 
@@ -159,34 +179,74 @@ def steps_per_frame(requested: int | None, fps: float, dt: float) -> int:
     return requested if requested is not None else max(1, round(1.0 / (fps * dt)))
 
 
-def scene_width(scene) -> float:
-    """Extent (m) of the scene's bodies along x."""
-    x = np.concatenate([b.mesh.vertices[:, 0] for b in scene.bodies])
-    return float(x.max() - x.min())
-
-
 # ---------------------------------------------------------------- what a frame shows
 
-def fixed_camera(hint: dict | None, positions: np.ndarray, aspect: float) -> Camera:
-    """The camera of the whole export: the scene's hint {"eye", "target"} if it
-    has one, else one that frames the initial positions (n, 3) with a margin."""
-    if hint is None:
-        lo, hi = positions.min(axis=0), positions.max(axis=0)
-        pad = FRAMING_MARGIN * (hi - lo).max()
-        return auto_frame(lo - pad, hi + pad, aspect=aspect)
+def compare_panels(sim, width: int) -> list[Panel]:
+    """Two half-width panels: the linear copy on the left, the corotational copy on the
+    right moved back onto it, so that one camera shows both from the very same view."""
+    bodies, count = sim.model.bodies, len(sim.model.bodies) // 2
+    scene_bodies = sim.scene.bodies
+    # Scene.side_by_side: body count + i is body i shifted along x.
+    shift = scene_bodies[count].mesh.vertices[0] - scene_bodies[0].mesh.vertices[0]
+    left = np.concatenate([b.surface for b in bodies[:count]])
+    right = np.concatenate([b.surface for b in bodies[count:]])
+    return [Panel(left, np.zeros(3), width // 2, "linear"),
+            Panel(right, -shift, width // 2, "corotational")]
+
+
+def auto_framed(positions: np.ndarray, aspect: float, hint: dict | None) -> Camera:
+    """A camera that frames positions (n, 3) with a margin, from the scene's hint's
+    direction (eye - target) if there is one."""
+    lo, hi = positions.min(axis=0), positions.max(axis=0)
+    pad = FRAMING_MARGIN * (hi - lo).max()
+    direction = VIEW_DIRECTION if hint is None else np.subtract(hint["eye"], hint["target"])
+    return auto_frame(lo - pad, hi + pad, direction=direction, aspect=aspect)
+
+
+def hinted(hint: dict) -> Camera:
+    """The camera the scene asks for: {"eye", "target"} (3,) each, in metres."""
     distance = np.linalg.norm(np.subtract(hint["eye"], hint["target"]))
     # Clip planes scale with the scene, as auto_frame's do.
     return Camera(eye=hint["eye"], target=hint["target"], near=0.02 * distance, far=20.0 * distance)
 
 
-def caption_lines(scene, sim, compare: bool) -> list[str]:
+def join_panels(pictures: list[np.ndarray], panels: list[Panel]) -> np.ndarray:
+    """The panels' pictures (H, w, 3) side by side, with a divider line and labels."""
+    if len(pictures) == 1:
+        return pictures[0]
+    image = np.concatenate(pictures, axis=1)
+    edges = np.cumsum([p.width for p in panels])[:-1]
+    for edge in edges:
+        image[:, edge - DIVIDER_WIDTH // 2: edge + DIVIDER_WIDTH // 2] = DIVIDER_COLOR
+    centres = np.concatenate([[0], edges]) + np.array([p.width for p in panels]) / 2
+    return draw_labels(image, [(p.label, x) for p, x in zip(panels, centres)])
+
+
+def draw_labels(image: np.ndarray, labels: list[tuple[str, float]]) -> np.ndarray:
+    """A copy of image (H, W, 3) uint8 with each (text, x) of labels on a panel at the
+    top of the image, centred at column x."""
+    canvas = Image.fromarray(image).convert("RGBA")
+    layer = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(layer)
+    font = ImageFont.load_default(size=max(12, canvas.height // 20))
+    padding = font.size // 3
+    for text, centre in labels:
+        left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+        box_w, box_h = right - left + 2 * padding, bottom - top + 2 * padding
+        x, y = round(centre - box_w / 2), padding
+        draw.rounded_rectangle([x, y, x + box_w, y + box_h], radius=padding, fill=PANEL_COLOR)
+        draw.text((x + padding - left, y + padding - top), text, font=font, fill=TEXT_COLOR)
+    return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
+
+
+def caption_lines(scene, compare: bool) -> list[str]:
     """The overlay's lines that do not change over time: scene, and which method each body uses."""
     if compare:
         count = len(scene.bodies) // 2
         names = [b.name.removesuffix(" (linear)") for b in scene.bodies[:count]]
         return [scene.name, f"left linear, right corotational: {', '.join(names)}"]
     by_method = {}
-    for body in sim.scene.bodies:
+    for body in scene.bodies:
         by_method.setdefault(body.method, []).append(body.name)
     return [scene.name] + [f"{method}: {', '.join(names)}" for method, names in by_method.items()]
 
@@ -195,44 +255,6 @@ def timing_line(step_ms: list[float], render_ms: float, renderer: str) -> str:
     """Measured speed for the video's overlay: the last frame's ms/step and this frame's rendering."""
     simulation = f"{step_ms[-1]:.1f} ms/step, " if step_ms else ""
     return f"{simulation}{render_ms:.0f} ms/frame to render ({renderer})"
-
-
-def group_labels(model, positions: np.ndarray, camera: Camera, width: int,
-                 height: int) -> list[tuple[str, tuple]]:
-    """[(text, (x, y) pixel)]: "linear" over the left copy and "corotational" over the
-    right one, above each copy's bounding box in positions (n, 3)."""
-    count = len(model.bodies) // 2
-    labels = []
-    for name, bodies in zip(GROUP_NAMES, (model.bodies[:count], model.bodies[count:])):
-        points = np.concatenate([positions[b.vertices] for b in bodies])
-        lo, hi = points.min(axis=0), points.max(axis=0)
-        pad = FRAMING_MARGIN * (hi - lo).max()
-        top = np.array([(lo[0] + hi[0]) / 2, hi[1] + pad, (lo[2] + hi[2]) / 2])
-        labels.append((name, project(camera, top, width, height)))
-    return labels
-
-
-def project(camera: Camera, point: np.ndarray, width: int, height: int) -> tuple[float, float]:
-    """Pixel (x right, y down) where a world point (3,) appears."""
-    clip = camera.view_proj(width / height) @ np.append(point, 1.0)
-    return (clip[0] / clip[3] + 1) / 2 * width, (1 - clip[1] / clip[3]) / 2 * height
-
-
-def draw_label(image: np.ndarray, text: str, centre: tuple) -> np.ndarray:
-    """A copy of image (H, W, 3) uint8 with text on a panel centred at pixel centre
-    (x, y), moved inside the image where it would stick out."""
-    canvas = Image.fromarray(image).convert("RGBA")
-    layer = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
-    draw = ImageDraw.Draw(layer)
-    font = ImageFont.load_default(size=max(12, canvas.height // 20))
-    padding = font.size // 3
-    left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
-    box_w, box_h = right - left + 2 * padding, bottom - top + 2 * padding
-    x = int(np.clip(centre[0] - box_w / 2, 0, max(canvas.width - box_w, 0)))
-    y = int(np.clip(centre[1] - box_h / 2, 0, max(canvas.height - box_h, 0)))
-    draw.rounded_rectangle([x, y, x + box_w, y + box_h], radius=padding, fill=PANEL_COLOR)
-    draw.text((x + padding - left, y + padding - top), text, font=font, fill=TEXT_COLOR)
-    return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
 
 
 # ---------------------------------------------------------------- files
