@@ -14,6 +14,7 @@ only with --debug).
 import argparse
 import os
 import sys
+from pathlib import Path
 
 DEFAULT_SCENE = "epcot"
 
@@ -129,9 +130,18 @@ def main(argv=None):
     parser = build_parser()
     if not [a for a in argv if not a.startswith("-")]:
         # no subcommand: the window when there is a display, else a useful export
-        argv = (["view"] if has_display() else ["export", "--out", "out", "--frames", "90",
-                                                 "--video", "out/" + DEFAULT_SCENE + ".mp4",
-                                                 "--overwrite"]) + argv
+        if has_display():
+            argv = ["view"] + argv
+        else:
+            # into a folder of its own (out/epcot, out/epcot-2, ...): earlier output is never touched
+            out, copy = Path("out") / DEFAULT_SCENE, 1
+            while out.exists() and (not out.is_dir() or any(out.iterdir())):
+                copy += 1
+                out = Path("out") / f"{DEFAULT_SCENE}-{copy}"
+            print(f"no display: exporting {DEFAULT_SCENE} (linear vs corotational) to {out}/",
+                  file=sys.stderr)
+            argv = ["export", DEFAULT_SCENE, "--compare", "--frames", "150", "--out", str(out),
+                    "--video", str(out / f"{DEFAULT_SCENE}.mp4")] + argv
     args = parser.parse_args(argv)
     from fem.errors import FemError
 

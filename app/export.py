@@ -106,6 +106,8 @@ def run(args) -> int:
         ground_y = initial[:, 1].min() - FRAMING_MARGIN * np.ptp(initial, axis=0).max()
     coloring = VertexColoring(sim, args.color, copies=2 if args.compare else 1)
     caption = caption_lines(sim.scene, args.compare)
+    # Over the sky, or over the floor where the panels' labels take the top.
+    corner = "bottom-left" if args.compare else "top-left"
 
     out.mkdir(parents=True, exist_ok=True)
     timings = {"step": [], "simulation": [], "rendering": [], "writing": []}
@@ -122,11 +124,11 @@ def run(args) -> int:
             rendered = time.perf_counter()
 
             picture = coloring.draw_legend(join_panels(pictures, panels))
-            lines = caption + [f"t = {sim.t:.2f} s   ({steps} x {sim.settings.dt:g} s steps/frame)"]
-            write_png(out / FRAME_NAME.format(index), draw_text_overlay(picture, lines, "bottom-left"))
+            lines = caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
+            write_png(out / FRAME_NAME.format(index), draw_text_overlay(picture, lines, corner))
             if writer.active:
                 speed = timing_line(timings["step"], 1e3 * (rendered - simulated), renderer.name)
-                writer.append(draw_text_overlay(picture, lines + [speed], "bottom-left"))
+                writer.append(draw_text_overlay(picture, lines + [speed], corner))
 
             timings["simulation"].append(1e3 * (simulated - start))
             timings["rendering"].append(1e3 * (rendered - simulated))

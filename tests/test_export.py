@@ -1,0 +1,130 @@
+"""`main.py export`: the checks one would do by hand on an export folder.
+
+Each export runs as its own process, as a user would run it: small frames, few
+frames and the small cube86 scene keep the whole module under a minute on two cores.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from PIL import Image
+
+REPO = Path(__file__).resolve().parents[1]
+FRAMES = 4
+SIZE = (160, 128)   # multiples of 16, as H.264 wants
+EXPORT = ["cube86", "--frames", str(FRAMES), "--size", f"{SIZE[0]}x{SIZE[1]}", "--steps-per-frame", "3"]
+
+
+def export(*args, cwd, env=None, **popen):
+    """`python main.py export ...` in a fresh interpreter, run from a temporary
+    folder (GGUI writes an imgui.ini into the working directory)."""
+    command = [sys.executable, str(REPO / "main.py"), "export", *args]
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=120,
+                          env={**os.environ, **(env or {})}, **popen)
+
+
+def frames(folder):
+    return sorted(Path(folder).glob("frame_*.png"))
+
+
+def coral(image):
+    """Mask (H, W) of pixels of the first body's colour (coral), lit or in shade."""
+    rgb = image.astype(int)
+    return (rgb[..., 0] > rgb[..., 1] + 40) & (rgb[..., 1] > rgb[..., 2])
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp("export")
+
+
+@pytest.fixture(scope="module")
+def first(workdir):
+    """An export with an MP4, through the default renderer (GGUI where Vulkan works)."""
+    result = export(*EXPORT, "--out", "a", "--video", "a.mp4", cwd=workdir)
+    assert result.returncode == 0, result.stderr
+    return result
+
+
+def test_export_writes_n_pictures_and_a_video_of_n_frames(workdir, first):
+    pngs = frames(workdir / "a")
+    assert [p.name for p in pngs] == [f"frame_{i:05d}.png" for i in range(FRAMES)]
+    for path in pngs:
+        image = np.asarray(Image.open(path).convert("RGB"))
+        assert image.shape == (SIZE[1], SIZE[0], 3)
+        assert coral(image).sum() > 50, f"{path.name}: the soft cube is not in the picture"
+        assert len(np.unique(image.reshape(-1, 3), axis=0)) > 100, f"{path.name} is blank"
+    video = list(iio.imiter(workdir / "a.mp4", plugin="FFMPEG"))
+    assert len(video) == FRAMES
+    assert video[0].shape == (SIZE[1], SIZE[0], 3)
+    # The last line on stdout says where the files are.
+    assert first.stdout.strip().splitlines()[-1].endswith("a.mp4")
+    assert not list(workdir.glob("**/*.part*"))
+
+
+def test_same_arguments_give_byte_identical_pictures(workdir, first):
+    again = export(*EXPORT, "--out", "b", cwd=workdir)
+    assert again.returncode == 0, again.stderr
+    for a, b in zip(frames(workdir / "a"), frames(workdir / "b"), strict=True):
+        assert a.read_bytes() == b.read_bytes(), a.name
+
+
+def test_software_renderer_without_vulkan_draws_the_same_scene(workdir, first):
+    result = export(*EXPORT, "--out", "soft", cwd=workdir, env={"VK_ICD_FILENAMES": "/nonexistent"})
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.count("using the software renderer") == 1
+    assert len(frames(workdir / "soft")) == FRAMES
+    last = np.asarray(Image.open(frames(workdir / "soft")[-1]).convert("RGB"))
+    reference = np.asarray(Image.open(frames(workdir / "a")[-1]).convert("RGB"))
+    # Whatever drew the reference (GGUI or this same fallback), the cube covers the same pixels.
+    overlap = (coral(last) & coral(reference)).sum() / (coral(last) | coral(reference)).sum()
+    assert overlap > 0.9
+
+
+def test_compare_shows_a_linear_and_a_corotational_copy(workdir):
+    result = export(*EXPORT, "--compare", "--out", "c", "--video", "c.gif", cwd=workdir)
+    assert result.returncode == 0, result.stderr
+    image = np.asarray(Image.open(frames(workdir / "c")[-1]).convert("RGB"))
+    columns = np.flatnonzero(coral(image).any(axis=0))
+    half = SIZE[0] // 2
+    left, right = columns[columns < half], columns[columns >= half]
+    # The soft cube once in each half, with empty columns between the two copies.
+    assert len(left) > 5 and len(right) > 5
+    assert right.min() - left.max() > 10
+    assert len(list(iio.imiter(workdir / "c.gif"))) == FRAMES
+
+
+def test_refuses_a_non_empty_folder(workdir):
+    folder = workdir / "taken"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("mine")
+    result = export(*EXPORT, "--out", "taken", cwd=workdir)
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: ")
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"]
+
+
+def test_interrupted_export_leaves_only_whole_files(workdir):
+    command = [sys.executable, str(REPO / "main.py"), "export", "cube86", "--frames", "1000",
+               "--size", "160x128", "--out", "cut", "--video", "cut.mp4"]
+    process = subprocess.Popen(command, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 100
+    while len(frames(workdir / "cut")) < 3 and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    process.wait(timeout=30)
+    assert process.returncode == 130, process.stderr.read()
+    written = frames(workdir / "cut")
+    assert 3 <= len(written) < 1000
+    for path in written:
+        Image.open(path).load()   # raises on a truncated file
+    assert not (workdir / "cut.mp4").exists()
+    leftovers = [p.name for p in workdir.glob("cut*/*") if not p.name.startswith("frame_")]
+    assert leftovers == [] and not list(workdir.glob("*.part*"))
