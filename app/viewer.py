@@ -29,17 +29,19 @@ PANEL_WIDTH = 0.29              # of the window's width, on the right
 MAX_STEPS_PER_FRAME = 8
 VIDEO_FPS = 30
 MARKER_SECONDS = 0.8            # how long a click's hit point and arrow stay drawn
+MARKER_COLOR = (1.0, 0.85, 0.1)
 DRAG_PIXELS = 6                 # a press and release further apart than this is a drag
 VOLUME_RANGE = (0.8, 1.2)       # colour scale of the volume ratio J
 HELP = """\
 left click      push the body along the view ray
 left drag       push along the drag (longer = harder)
-right drag      orbit          wheel / up, down   zoom
+right drag      orbit
 shift+right or middle drag    pan
+ctrl+right drag or up/down    zoom
 f   frame the scene again      c   linear <-> corotational
 space  pause     n  one step   r   reset the scene
 v   start/stop video (mp4)     p   screenshot (png)
-1-9 switch scene (or the panel's list)
+scenes: the numbered list in the panel
 h   this help                  Esc quit"""
 
 
@@ -98,12 +100,12 @@ class Viewer:
         self.backdrop.from_numpy(_to_ggui_layout(background(width, height)))
         self.buffers = FrameBuffers()
         self.marker_point = ti.Vector.field(3, ti.f32, 1)
-        self.marker_arrow = ti.Vector.field(3, ti.f32, 6)
+        self.marker_arrow = ti.Vector.field(3, ti.f32, 16)
         self.sim = None
         self.paused = self.show_help = False
         self.color_mode = "body"
         self.events, self.frame = [], 0
-        self.fps, self.render_ms, self.steps_last_frame = 0.0, 0.0, 0
+        self.fps, self.frame_seconds, self.render_ms, self.steps_last_frame = 0.0, 0.0, 0.0, 0
         self.press, self.marker, self.marker_until = None, None, 0.0
         self.drag_origin = None
         self.screenshot_due, self.strain_max = False, 1.0
@@ -150,7 +152,8 @@ class Viewer:
     def reset_view(self):
         """Frame the bodies, looking along the scene's own camera direction when it has one,
         and slide them left so the panel does not cover them."""
-        self.camera = initial_camera(self.x, self.sim.scene.camera, self.width, self.height)
+        self.camera = initial_camera(self.x, self.sim.scene.camera, self.width, self.height,
+                                     compare=self.args.compare)
 
     def methods(self):
         return [b.method for b in self.sim.scene.bodies]
@@ -162,8 +165,9 @@ class Viewer:
         while self.window.running:
             now = time.perf_counter()
             frame_seconds, last = now - last, now
-            if frame_seconds > 0:
-                self.fps = 0.9 * self.fps + 0.1 / frame_seconds if self.fps else 1 / frame_seconds
+            # fps from a running mean of the frame time, which a single slow frame barely moves
+            self.frame_seconds = 0.9 * self.frame_seconds + 0.1 * frame_seconds if self.frame else frame_seconds
+            self.fps = 1.0 / max(self.frame_seconds, 1e-6)
             self.handle_keys()
             self.handle_mouse()
             if not self.window.running:
@@ -398,10 +402,11 @@ class Viewer:
             return
         point, delta_v = self.marker
         self.marker_point.from_numpy(point[None].astype(np.float32))
-        self.scene3d.particles(self.marker_point, radius=0.02 * self.size, color=(1.0, 0.85, 0.1))
-        self.marker_arrow.from_numpy(arrow(point, delta_v, 0.3 * self.size / max(self.strength, 1e-9),
-                                           self.camera).astype(np.float32))
-        self.scene3d.lines(self.marker_arrow, width=3, color=(1.0, 0.85, 0.1))
+        self.scene3d.particles(self.marker_point, radius=0.025 * self.size, color=MARKER_COLOR)
+        # The arrow as a row of beads: GGUI's lines are one pixel wide on some drivers.
+        self.marker_arrow.from_numpy(arrow_beads(point, delta_v, 0.4 * self.size / max(self.strength, 1e-9),
+                                                 self.marker_arrow.shape[0]).astype(np.float32))
+        self.scene3d.particles(self.marker_arrow, radius=0.012 * self.size, color=MARKER_COLOR)
 
     def capture(self):
         rgba = self.window.get_image_buffer_as_numpy()
@@ -420,73 +425,89 @@ class Viewer:
     # ------------------------------------------------------------ panel
 
     def draw_panel(self):
-        sim, s = self.sim, self.stats
         with self.gui.sub_window("softfem", 1 - PANEL_WIDTH, 0.0, PANEL_WIDTH, 1.0) as g:
-            g.text(f"{sim.scene.name}")
-            g.text(f"{sim.model.n_tets} tets, {sim.model.n_vertices} vertices   [h] help")
+            g.text(f"{self.sim.scene.name}")
+            g.text(f"{self.sim.model.n_tets} tets, {self.sim.model.n_vertices} vertices   [h] help")
+            if self.message:
+                g.text(self.message)
             if g.button("run" if self.paused else "pause"):
                 self.paused = not self.paused
             if g.button("step"):
                 self.paused = True
-                sim.step()
+                self.sim.step()
             if g.button("reset"):
                 self.reset()
+            for section in (self.draw_stats, self.draw_methods, self.draw_impulse, self.draw_colors,
+                            self.draw_solver, self.draw_material, self.draw_scenes):
+                g.text("")
+                section(g)
 
-            g.text("")
-            g.text("Method  (c toggles all)")
-            all_corot = all(m == "corotational" for m in self.methods())
-            if g.checkbox("corotational (all bodies)", all_corot) != all_corot:
-                self.toggle_corotation()
-            methods = self.methods()
-            wanted = ["corotational" if g.checkbox(f"{i}: {b.name}", m == "corotational") else "linear"
-                      for i, (b, m) in enumerate(zip(sim.scene.bodies, methods))]
-            if wanted != methods:
-                self.set_methods(wanted)
+    def draw_stats(self, g):
+        s = self.stats
+        g.text("Numbers")
+        g.text(f"{self.fps:5.1f} fps, {self.steps_last_frame} step(s)/frame, t = {s['t']:.2f} s"
+               + ("  PAUSED" if self.paused else ""))
+        g.text(f"ms/step: rotations {s.get('rotation_ms', 0):.1f}, solve {s.get('solve_ms', 0):.1f}")
+        g.text(f"ms/frame rendering: {self.render_ms:.1f}")
+        residual = s.get("residual")
+        g.text(f"{s.get('solver', self.sim.settings.method)}: {s.get('solver_iters', 0)} iterations, "
+               f"residual {residual if residual is not None else float('nan'):.1e}"
+               + ("" if s.get("converged", True) else "  NOT CONVERGED"))
+        for body, ratio in zip(self.sim.scene.bodies, s["volume_ratio"]):
+            g.text(f"volume {100 * ratio:6.1f} %  {body.name}")
+        g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
+        g.text(f"inverted tets: {s['inverted_tets']}")
 
-            g.text("")
-            g.text("Solver")
-            st = sim.settings
-            if g.button(f"solver: {st.method} (switch)"):
-                st.method = "jacobi" if st.method == "pcg" else "pcg"
-            exponent = g.slider_int("tolerance 1e-k", round(-np.log10(st.tolerance)), 1, 10)
-            st.tolerance = 10.0 ** -exponent
-            st.max_iterations = g.slider_int("max iterations", st.max_iterations, 1, 1000)
-            st.dt = max(g.slider_float("dt [s]", st.dt, 0.001, 0.05), 1e-4)
-            effects = sim.scene.effects
-            effects.alpha = g.slider_float("damping alpha", effects.alpha, 0.0, 2.0)
-            effects.beta = g.slider_float("damping beta", effects.beta, 0.0, 0.5)
+    def draw_methods(self, g):
+        g.text("Method  (c toggles all)")
+        methods = self.methods()
+        all_corotational = all(m == "corotational" for m in methods)
+        if g.checkbox("corotational (all bodies)", all_corotational) != all_corotational:
+            self.toggle_corotation()
+            return
+        wanted = ["corotational" if g.checkbox(f"{i}: {b.name}", m == "corotational") else "linear"
+                  for i, (b, m) in enumerate(zip(self.sim.scene.bodies, methods))]
+        if wanted != methods:
+            self.set_methods(wanted)
 
-            self.draw_material(g)
+    def draw_impulse(self, g):
+        g.text("Click impulse")
+        self.strength = g.slider_float("strength [m/s]", self.strength, 0.0, 5.0 * self.size)
+        self.radius = g.slider_float("radius [m]", self.radius, 0.01 * self.size, 0.5 * self.size)
 
-            g.text("")
-            g.text("Click impulse")
-            self.strength = g.slider_float("strength [m/s]", self.strength, 0.0, 5.0 * self.size)
-            self.radius = g.slider_float("radius [m]", self.radius, 0.01 * self.size, 0.5 * self.size)
-            g.text("")
-            g.text("Colour")
-            for mode in ("body", "volume", "strain"):
-                if g.checkbox(f"{mode}", self.color_mode == mode):
-                    self.color_mode = mode
-            if self.color_mode == "volume":
-                g.text(f"blue J={VOLUME_RANGE[0]}  grey 1  red J={VOLUME_RANGE[1]}")
-            elif self.color_mode == "strain":
-                g.text(f"energy density 0 .. {self.strain_max:.3g} J/m^3")
+    def draw_colors(self, g):
+        g.text("Colour")
+        for mode in ("body", "volume", "strain"):
+            if g.checkbox(f"{mode}", self.color_mode == mode):
+                self.color_mode = mode
+        if self.color_mode == "volume":
+            g.text(f"volume ratio: blue {VOLUME_RANGE[0]}, grey 1, red {VOLUME_RANGE[1]}")
+        elif self.color_mode == "strain":
+            g.text(f"energy density 0 .. {self.strain_max:.3g} J/m^3")
 
-            self.draw_stats(g, s)
+    def draw_solver(self, g):
+        """Solver settings; the engine reads them at every step."""
+        g.text("Solver")
+        settings, effects = self.sim.settings, self.sim.scene.effects
+        if g.button(f"solver: {settings.method} (switch)"):
+            settings.method = "jacobi" if settings.method == "pcg" else "pcg"
+        exponent = g.slider_int("tolerance 1e-k", round(-np.log10(settings.tolerance)), 1, 10)
+        settings.tolerance = 10.0 ** -exponent
+        settings.max_iterations = g.slider_int("max iterations", settings.max_iterations, 1, 1000)
+        settings.dt = max(g.slider_float("dt [s]", settings.dt, 0.001, 0.05), 1e-4)
+        effects.alpha = g.slider_float("damping alpha", effects.alpha, 0.0, 2.0)
+        effects.beta = g.slider_float("damping beta", effects.beta, 0.0, 0.5)
 
-            g.text("")
-            g.text("Scenes")
-            for number, ref in enumerate(self.scene_refs[:9], start=1):
-                if g.button(f"{number} {Path(str(ref)).stem}"):
-                    self.switch_scene(ref)
-            if self.message:
-                g.text(self.message)
+    def draw_scenes(self, g):
+        g.text("Scenes")
+        for number, ref in enumerate(self.scene_refs[:9], start=1):
+            if g.button(f"{number} {Path(str(ref)).stem}"):
+                self.switch_scene(ref)
 
     def draw_material(self, g):
         """E and nu of one body, applied when the slider is let go (changing them rebuilds
         the preconditioner, and each drag position would otherwise be a new material)."""
         bodies = self.sim.scene.bodies
-        g.text("")
         g.text("Material")
         if len(bodies) > 1:
             self.material_body = g.slider_int("body", self.material_body, 0, len(bodies) - 1)
@@ -505,22 +526,6 @@ class Viewer:
             self.events.append({"type": "material", "body": body, "E": E, "nu": nu})
             self.material_edit = None
 
-    def draw_stats(self, g, s):
-        g.text("")
-        g.text("Numbers")
-        g.text(f"{self.fps:5.1f} fps, {self.steps_last_frame} step(s)/frame, t = {s['t']:.2f} s"
-               + ("  PAUSED" if self.paused else ""))
-        g.text(f"ms/step: rotations {s.get('rotation_ms', 0):.1f}, solve {s.get('solve_ms', 0):.1f}")
-        g.text(f"ms/frame rendering: {self.render_ms:.1f}")
-        residual = s.get("residual")
-        g.text(f"{s.get('solver', self.sim.settings.method)}: {s.get('solver_iters', 0)} iterations, "
-               f"residual {residual if residual is not None else float('nan'):.1e}"
-               + ("" if s.get("converged", True) else "  NOT CONVERGED"))
-        for body, ratio in zip(self.sim.scene.bodies, s["volume_ratio"]):
-            g.text(f"volume {100 * ratio:6.1f} %  {body.name}")
-        g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
-        g.text(f"inverted tets: {s['inverted_tets']}")
-
     def draw_help(self):
         lines = HELP.splitlines()
         with self.gui.sub_window("help (h to close)", 0.05, 0.1, 0.6, 0.045 * len(lines) + 0.06) as g:
@@ -532,11 +537,15 @@ class Viewer:
         self.load(ref)
 
 
-def initial_camera(positions, scene_camera, width, height) -> Camera:
+def initial_camera(positions, scene_camera, width, height, compare=False) -> Camera:
     """A camera framing positions (n, 3) in the part of a width x height window left of the
-    panel, looking along the scene's camera direction ({"eye", "target"} or None)."""
+    panel, looking along the scene's camera direction ({"eye", "target"} or None); in
+    compare mode from nearly straight ahead, so that neither copy hides the other."""
     lo, hi = positions.min(axis=0), positions.max(axis=0)
-    direction = (np.asarray(scene_camera["eye"]) - scene_camera["target"]) if scene_camera else (1.0, 0.6, 1.6)
+    direction = np.subtract(scene_camera["eye"], scene_camera["target"]) if scene_camera else (1.0, 0.6, 1.6)
+    if compare:
+        horizontal = np.hypot(direction[0], direction[2])
+        direction = (0.2 * horizontal, direction[1], horizontal)
     camera = auto_frame(lo, hi, direction=direction, aspect=width * (1 - PANEL_WIDTH) / height)
     # Sliding the camera right moves the scene left, to the middle of the uncovered part.
     return orbit.pan(camera, -PANEL_WIDTH * width / 2, 0.0, height)
@@ -556,15 +565,9 @@ def warm_up(sim):
     sim.reset()
 
 
-def arrow(point, delta_v, metres_per_mps, camera: Camera):
-    """Line segments (6, 3) of an arrow ending at `point` and pointing along delta_v,
-    the way the push goes; its length is |delta_v| * metres_per_mps."""
+def arrow_beads(point, delta_v, metres_per_mps, count):
+    """count points (count, 3) from the arrow's tail to its tip at `point`: an arrow
+    along delta_v, the way the push goes, |delta_v| * metres_per_mps long."""
     length = np.linalg.norm(delta_v) * metres_per_mps
     direction = delta_v / max(np.linalg.norm(delta_v), 1e-12)
-    tail = point - length * direction
-    side = np.cross(direction, camera.eye - point)
-    side = side / max(np.linalg.norm(side), 1e-12)
-    head = 0.25 * length
-    return np.array([tail, point,
-                     point, point - head * direction + 0.5 * head * side,
-                     point, point - head * direction - 0.5 * head * side])
+    return point - length * np.linspace(1.0, 0.0, count)[:, None] * direction
