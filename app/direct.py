@@ -1,0 +1,211 @@
+"""The coursework's way, as a baseline: assemble K, factorise A, solve (numpy/scipy, float64).
+
+The same backward Euler step as `fem.solver` (method.md), with the same scene
+(masses, materials, Rayleigh damping, gravity, pins, ground, impulses):
+
+    A v_new = M v + dt (f_elastic(x) + M g),   A = cM M + cK K(R),   x_new = x + dt v_new
+
+but K(R) = sum_e R Ke R^T is assembled as a sparse matrix from the textbook
+12x12 element matrices and A is factorised: once for linear FEM (A never
+changes), every step for corotational FEM (the rotations do). Rotations come
+from a numpy SVD, so this module shares no code with the engine's solver and
+the two can check each other. It always runs in float64.
+"""
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+try:
+    from sksparse.cholmod import cholesky
+except ImportError:
+    cholesky = None
+
+FACTORISATION = "CHOLMOD (scikit-sparse)" if cholesky else "SuperLU (scipy)"
+
+
+def shape_gradients(X, tets):
+    """g (m, 4, 3): gradients of a tet's four linear shape functions (1/m); W (m,): rest volumes (m^3).
+
+    g_k is row k of Bm = Dm^-1 for k < 3 and g_3 = -(g_0 + g_1 + g_2).
+    """
+    Dm = np.stack([X[tets[:, k]] - X[tets[:, 3]] for k in range(3)], axis=2)
+    Bm = np.linalg.inv(Dm)
+    g = np.concatenate([Bm, -Bm.sum(axis=1, keepdims=True)], axis=1)
+    return g, np.abs(np.linalg.det(Dm)) / 6
+
+
+def element_stiffness(g, W, mu, lam):
+    """Ke (m, 4, 4, 3, 3): the 3x3 block between corners a and b of each tet's 12x12 matrix (N/m),
+
+    Ke_ab = W (lam g_a g_b^T + mu g_b g_a^T + mu (g_a . g_b) I), so that f_a = -sum_b Ke_ab u_b.
+    """
+    gg = np.einsum("eai,ebi->eab", g, g)
+    Ke = (mu[:, None, None, None, None] * np.einsum("ebi,eaj->eabij", g, g)
+          + lam[:, None, None, None, None] * np.einsum("eai,ebj->eabij", g, g)
+          + (mu[:, None, None] * gg)[..., None, None] * np.eye(3))
+    return W[:, None, None, None, None] * Ke
+
+
+def polar_rotations(F):
+    """R (m, 3, 3): proper rotation nearest to each F, R = U V^T from F = U S V^T.
+
+    A reflection (det U V^T < 0, an inverted tet) is moved into the smallest
+    singular value, which numpy puts last (Irving et al. 2004).
+    """
+    U, _, Vt = np.linalg.svd(F)
+    flip = np.linalg.det(U @ Vt) < 0
+    U[flip, :, 2] *= -1
+    return U @ Vt
+
+
+def factorise(A):
+    """(solve, bytes): a solver for the sparse SPD matrix A and the memory its factor holds."""
+    if cholesky is not None:
+        factor = cholesky(A.tocsc())
+        return factor, 12 * factor.L().nnz
+    lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
+    return lu.solve, 12 * (lu.L.nnz + lu.U.nnz)   # float64 value + int32 index per entry
+
+
+class DirectSolver:
+    """Steps a `fem.Simulation`'s scene with an assembled, factorised matrix.
+
+    Reads the engine's model and scene only; its own state is x, v (n, 3) float64 numpy arrays.
+    """
+
+    def __init__(self, sim):
+        model, effects = sim.model, sim.scene.effects
+        self.dt = sim.settings.dt
+        self.cM, self.cK = sim.coefficients
+        self.effects = effects
+        self.tets = model.tets_np
+        self.X = model.rest_positions_np
+        self.mass = model.mass_np
+        n, m = model.n_vertices, model.n_tets
+        mu, lam = np.empty(m), np.empty(m)
+        self.corotational = np.zeros(m, bool)
+        for info, body in zip(model.bodies, model.scene.bodies):
+            E, nu = body.material.E, body.material.nu
+            mu[info.tets], lam[info.tets] = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+            self.corotational[info.tets] = body.method == "corotational"
+        g, W = shape_gradients(self.X, self.tets)
+        self.Ke = element_stiffness(g, W, mu, lam)
+        self.Bm = g[:, :3, :]                        # F = Ds Bm
+        self.free = model.free.to_numpy().astype(bool)
+        self.free_dofs = np.repeat(self.free, 3)
+        self.impulses = sorted(sim.impulses, key=lambda imp: imp[0])
+        self.build_pattern(n)
+        self.x, self.v = model.initial_state()
+        self.t = 0.0
+        self.A, self.fixed = None, None     # the last matrix, and the dofs fixed when it was factorised
+        self.memory_bytes = 0               # of A and its factor
+
+    def build_pattern(self, n):
+        """The sparsity of K, once: where each of the m x 144 element entries lands in a CSR matrix."""
+        dofs = (3 * self.tets[:, :, None] + np.arange(3)).reshape(-1, 12)
+        rows = np.repeat(dofs, 12, axis=1).ravel()
+        cols = np.tile(dofs, (1, 12)).ravel()
+        size = 3 * n
+        keys, self.slot = np.unique(rows.astype(np.int64) * size + cols, return_inverse=True)
+        self.indices = (keys % size).astype(np.int32)
+        self.indptr = np.searchsorted(keys // size, np.arange(size + 1)).astype(np.int32)
+        self.diagonal = np.flatnonzero(keys // size == keys % size)   # one slot per dof, in dof order
+        self.size = size
+
+    def rotations(self):
+        """Per-tet R: the polar rotation of F for corotational tets, the identity for linear ones."""
+        R = np.broadcast_to(np.eye(3), (len(self.tets), 3, 3)).copy()
+        if self.corotational.any():
+            x, T = self.x, self.tets[self.corotational]
+            Ds = np.stack([x[T[:, k]] - x[T[:, 3]] for k in range(3)], axis=2)
+            R[self.corotational] = polar_rotations(Ds @ self.Bm[self.corotational])
+        return R
+
+    def system_matrix(self, R):
+        """A = cM M + cK sum_e R Ke R^T (3n x 3n CSR), summed into the fixed pattern."""
+        Rb = R[:, None, None]
+        KR = Rb @ self.Ke @ np.swapaxes(Rb, -1, -2)                       # (m, 4, 4, 3, 3)
+        values = KR.transpose(0, 1, 3, 2, 4).reshape(-1)                   # rows (a, i), cols (b, j)
+        data = self.cK * np.bincount(self.slot, values, minlength=len(self.indices))
+        data[self.diagonal] += self.cM * np.repeat(self.mass, 3)
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+
+    def contacts(self):
+        """(n,) bool, as in the engine: free vertices whose velocity would take them below the ground."""
+        if self.effects.ground is None:
+            return np.zeros(len(self.x), bool)
+        return self.free & (self.x[:, 1] + self.dt * self.v[:, 1] < self.effects.ground)
+
+    def constraints(self, contact):
+        """(fixed, v_fixed), (3n,) each: the dofs whose new velocity is prescribed, and its value.
+
+        Pinned vertices keep v = 0; a vertex in contact gets the normal velocity that lands it on the plane.
+        """
+        fixed = ~self.free_dofs
+        v_fixed = np.zeros(self.size)
+        normal = 3 * np.flatnonzero(contact) + 1
+        fixed[normal] = True
+        if len(normal):
+            v_fixed[normal] = (self.effects.ground - self.x[contact, 1]) / self.dt
+        return fixed, v_fixed
+
+    def factorise(self, A, fixed):
+        """Factorise the free block of A; keep the block that couples free to fixed dofs."""
+        rows = A[~fixed]
+        A_free = rows[:, ~fixed]
+        self.solve, factor_bytes = factorise(A_free)
+        self.coupling = rows[:, fixed]
+        self.fixed = fixed
+        self.memory_bytes = A.data.nbytes + A.indices.nbytes + A.indptr.nbytes + factor_bytes
+
+    def elastic_forces(self, R):
+        """(n, 3) f = sum over tets of -R Ke (R^T x_e - X_e), N."""
+        xe, Xe = self.x[self.tets], self.X[self.tets]
+        u = np.einsum("eji,eaj->eai", R, xe) - Xe                          # R^T x_e - X_e
+        fe = -np.einsum("eij,eaj->eai", R, np.einsum("eabij,ebj->eai", self.Ke, u))
+        f = np.zeros((len(self.X), 3))
+        for k in range(3):
+            f[:, k] = np.bincount(self.tets.ravel(), fe[:, :, k].ravel(), minlength=len(self.X))
+        return f
+
+    def step(self):
+        """One backward Euler step; returns wall_ms, rotation_ms, factorise_ms, solve_ms."""
+        start = time.perf_counter()
+        while self.impulses and self.impulses[0][0] <= self.t + 0.5 * self.dt:
+            _, ids, dv = self.impulses.pop(0)
+            np.add.at(self.v, ids, self.free[ids, None] * np.asarray(dv, float))
+        R = self.rotations()
+        rotated = time.perf_counter()
+        contact = self.contacts()
+        fixed, v_fixed = self.constraints(contact)
+        corotational = self.corotational.any()
+        if corotational or self.A is None:
+            self.A = self.system_matrix(R)
+        if corotational or self.fixed is None or not np.array_equal(fixed, self.fixed):
+            self.factorise(self.A, fixed)   # linear: once, unless the contacts change
+        factorised = time.perf_counter()
+        f = self.elastic_forces(R)
+        if self.effects.gravity is not None:
+            f += self.mass[:, None] * np.asarray(self.effects.gravity)
+        b = (self.mass[:, None] * self.v + self.dt * f).ravel()
+        v_new = v_fixed
+        v_new[~fixed] = self.solve(b[~fixed] - self.coupling @ v_fixed[fixed])
+        self.v = v_new.reshape(-1, 3)
+        self.x = self.x + self.dt * self.v
+        if self.effects.ground is not None:
+            self.ground_contact(contact)
+        self.t += self.dt
+        end = time.perf_counter()
+        return {"wall_ms": 1e3 * (end - start), "rotation_ms": 1e3 * (rotated - start),
+                "factorise_ms": 1e3 * (factorised - rotated), "solve_ms": 1e3 * (end - factorised)}
+
+    def ground_contact(self, contact):
+        """As the engine: friction on the vertices in contact, and none left below the plane."""
+        hit = contact | (self.x[:, 1] < self.effects.ground)
+        self.x[hit, 1] = np.maximum(self.x[hit, 1], self.effects.ground)
+        self.v[hit, 1] = np.maximum(self.v[hit, 1], 0.0)
+        self.v[hit, 0] *= 1 - self.effects.friction
+        self.v[hit, 2] *= 1 - self.effects.friction
