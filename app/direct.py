@@ -101,6 +101,7 @@ class DirectSolver:
         self.x, self.v = model.initial_state()
         self.t = 0.0
         self.A, self.fixed = None, None     # the last matrix, and the dofs fixed when it was factorised
+        self.pressed = np.zeros(n, bool)    # vertices the ground pushed up last step
         self.memory_bytes = 0               # of A and its factor
 
     def build_pattern(self, n):
@@ -134,10 +135,11 @@ class DirectSolver:
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
 
     def contacts(self):
-        """(n,) bool, as in the engine: free vertices whose velocity would take them below the ground."""
+        """(n,) bool, the engine's active set: free vertices whose velocity would take them below
+        the ground this step, or that the ground still pushed up last step."""
         if self.effects.ground is None:
-            return np.zeros(len(self.x), bool)
-        return self.free & (self.x[:, 1] + self.dt * self.v[:, 1] < self.effects.ground)
+            return self.pressed
+        return self.free & ((self.x[:, 1] + self.dt * self.v[:, 1] < self.effects.ground) | self.pressed)
 
     def constraints(self, contact):
         """(fixed, v_fixed), (3n,) each: the dofs whose new velocity is prescribed, and its value.
@@ -193,6 +195,8 @@ class DirectSolver:
         b = (self.mass[:, None] * self.v + self.dt * f).ravel()
         v_new = v_fixed
         v_new[~fixed] = self.solve(b[~fixed] - self.coupling @ v_fixed[fixed])
+        if self.effects.ground is not None:   # the plane pushes where (A v - b)_y > 0; elsewhere it may let go
+            self.pressed = contact & ((self.A @ v_new - b)[1::3] > 0)
         self.v = v_new.reshape(-1, 3)
         self.x = self.x + self.dt * self.v
         if self.effects.ground is not None:
@@ -204,7 +208,9 @@ class DirectSolver:
 
     def ground_contact(self, contact):
         """As the engine: friction on the vertices in contact, and none left below the plane."""
-        hit = contact | (self.x[:, 1] < self.effects.ground)
+        below = self.x[:, 1] < self.effects.ground
+        self.pressed |= below
+        hit = contact | below
         self.x[hit, 1] = np.maximum(self.x[hit, 1], self.effects.ground)
         self.v[hit, 1] = np.maximum(self.v[hit, 1], 0.0)
         self.v[hit, 0] *= 1 - self.effects.friction
