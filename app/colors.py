@@ -39,7 +39,7 @@ class VertexColoring:
             self.title, self.colormap = "volume ratio J = det F", "coolwarm"
             self.vmin, self.vmax = VOLUME_RANGE
         elif mode == "strain":
-            self.title, self.colormap = "strain energy density, J/m^3", "viridis"
+            self.title, self.colormap = "strain energy, J/m^3", "viridis"  # a density
             self.vmin, self.vmax = 0.0, strain_energy_scale(sim.scene.bodies)
 
     def colors(self, sim) -> np.ndarray:

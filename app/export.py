@@ -87,27 +87,7 @@ def run(args) -> int:
                          solver=args.solver, dt=args.dt, tolerance=args.tol,
                          max_iterations=args.max_iters)
     steps = steps_per_frame(args.steps_per_frame, args.fps, sim.settings.dt)
-    panels = compare_panels(sim, width) if args.compare else [
-        Panel(sim.model.surface, np.zeros(3), width)]
-    try:
-        renderer = make_renderer(args.renderer, panels[0].width, height)
-    except RuntimeError as error:   # --renderer ggui without a working Vulkan driver
-        raise fem.FemError(f"--renderer {args.renderer}: {error} "
-                           "(--renderer software needs no Vulkan)") from None
-
-    # Framed on the first panel's bodies: the others are copies of them, moved onto them.
-    initial = sim.positions()[np.unique(panels[0].faces)]
-    aspect = panels[0].width / height
-    camera = (auto_framed(initial, aspect, scene.camera) if args.compare or scene.camera is None
-              else hinted(scene.camera))
-    if scene.effects.ground is not None:
-        ground_y = scene.effects.ground
-    else:   # for scale only: just below the initial state, where it stays
-        ground_y = initial[:, 1].min() - FRAMING_MARGIN * np.ptp(initial, axis=0).max()
-    coloring = VertexColoring(sim, args.color, copies=2 if args.compare else 1)
-    caption = caption_lines(sim.scene, args.compare)
-    # Over the sky, or over the floor where the panels' labels take the top.
-    corner = "bottom-left" if args.compare else "top-left"
+    view = View(sim, scene, args.compare, args.color, args.renderer, width, height)
 
     out.mkdir(parents=True, exist_ok=True)
     timings = {"step": [], "simulation": [], "rendering": [], "writing": []}
@@ -118,17 +98,14 @@ def run(args) -> int:
             if index > 0:
                 timings["step"].append(statistics.mean(sim.step()["wall_ms"] for _ in range(steps)))
             simulated = time.perf_counter()
-            positions, colors = sim.positions(), coloring.colors(sim)
-            pictures = [renderer.render(positions + p.offset, p.faces, colors, camera, ground_y)
-                        for p in panels]
+            picture = view.picture(sim)
             rendered = time.perf_counter()
 
-            picture = coloring.draw_legend(join_panels(pictures, panels))
-            lines = caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
-            write_png(out / FRAME_NAME.format(index), draw_text_overlay(picture, lines, corner))
+            lines = view.caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
+            write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines))
             if writer.active:
-                speed = timing_line(timings["step"], 1e3 * (rendered - simulated), renderer.name)
-                writer.append(draw_text_overlay(picture, lines + [speed], corner))
+                speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
+                writer.append(view.annotated(picture, lines + [speed]))
 
             timings["simulation"].append(1e3 * (simulated - start))
             timings["rendering"].append(1e3 * (rendered - simulated))
@@ -137,10 +114,53 @@ def run(args) -> int:
     if args.overwrite:
         remove_stale_frames(out, args.frames)
 
-    print(summary(timings, steps, renderer.name))
+    print(summary(timings, steps, view.renderer.name))
     where = f"{out / FRAME_NAME.format(0)} .. {FRAME_NAME.format(args.frames - 1)}"
     print(f"wrote {args.frames} frames {where}" + (f" and {video}" if video else ""))
     return 0
+
+
+class View:
+    """What every frame shows and from where: panels, renderer, fixed camera and floor, colours, captions.
+
+    sim: the running simulation (of scene.side_by_side() when compare);
+    scene: the scene as loaded, for its camera hint and ground;
+    color: a VertexColoring mode; renderer: "auto", "ggui" or "software";
+    width, height: of the whole frame, pixels.
+    """
+
+    def __init__(self, sim, scene, compare: bool, color: str, renderer: str, width: int, height: int):
+        self.panels = compare_panels(sim, width) if compare else [
+            Panel(sim.model.surface, np.zeros(3), width)]
+        try:
+            self.renderer = make_renderer(renderer, self.panels[0].width, height)
+        except RuntimeError as error:   # --renderer ggui without a working Vulkan driver
+            raise fem.FemError(f"--renderer {renderer}: {error} "
+                               "(--renderer software needs no Vulkan)") from None
+        # Framed on the first panel's bodies: the others are copies of them, moved onto them.
+        initial = sim.positions()[np.unique(self.panels[0].faces)]
+        aspect = self.panels[0].width / height
+        self.camera = (auto_framed(initial, aspect, scene.camera) if compare or scene.camera is None
+                       else hinted(scene.camera))
+        if scene.effects.ground is not None:
+            self.ground_y = scene.effects.ground
+        else:   # for scale only: below the initial state, and staying there
+            self.ground_y = initial[:, 1].min() - FRAMING_MARGIN * np.ptp(initial, axis=0).max()
+        self.coloring = VertexColoring(sim, color, copies=2 if compare else 1)
+        self.caption = caption_lines(sim.scene, compare)
+        # Over the sky, or over the floor where the panels' labels take the top.
+        self.corner = "bottom-left" if compare else "top-left"
+
+    def picture(self, sim) -> np.ndarray:
+        """The simulation now, (H, W, 3) uint8: every panel, labels and the colour legend."""
+        positions, colors = sim.positions(), self.coloring.colors(sim)
+        pictures = [self.renderer.render(positions + p.offset, p.faces, colors, self.camera,
+                                         self.ground_y) for p in self.panels]
+        return self.coloring.draw_legend(join_panels(pictures, self.panels))
+
+    def annotated(self, picture: np.ndarray, lines: list[str]) -> np.ndarray:
+        """A copy of picture with lines of text in the overlay's corner."""
+        return draw_text_overlay(picture, lines, self.corner)
 
 
 # ---------------------------------------------------------------- arguments
