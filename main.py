@@ -12,6 +12,7 @@ only with --debug).
 """
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -25,6 +26,25 @@ class Parser(argparse.ArgumentParser):
     def error(self, message):
         print(f"error: {self.prog}: {message} (see --help)", file=sys.stderr)
         sys.exit(2)
+
+
+def number(kind, low, inclusive=False):
+    """An argparse type: a finite `kind` (int or float) > low (>= low when inclusive)."""
+    def convert(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if not math.isfinite(value) or not (value >= low if inclusive else value > low):
+            raise argparse.ArgumentTypeError(f"must be {'>=' if inclusive else '>'} {low}, got {text}")
+        return value
+    return convert
+
+
+POSITIVE = number(float, 0)
+COUNT = number(int, 1, inclusive=True)
+STEPS = number(int, 0, inclusive=True)
 
 
 def add_common(p):
@@ -48,9 +68,9 @@ def add_scene_options(p, scene_required=True):
     m.add_argument("--corotational", dest="method", action="store_const", const="corotational",
                    help="every body uses corotational FEM")
     p.add_argument("--solver", choices=["pcg", "jacobi"], help="linear solver (scene default: pcg)")
-    p.add_argument("--tol", type=float, help="relative residual tolerance of the solve")
-    p.add_argument("--max-iters", type=int, help="iteration cap of the solve")
-    p.add_argument("--dt", type=float, help="time step, s")
+    p.add_argument("--tol", type=POSITIVE, help="relative residual tolerance of the solve")
+    p.add_argument("--max-iters", type=COUNT, help="iteration cap of the solve")
+    p.add_argument("--dt", type=POSITIVE, help="time step, s")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a TOML scene value, e.g. --set body.soft.mesh.cells=[8,8,8]")
     add_common(p)
@@ -63,7 +83,7 @@ def build_parser():
 
     p = sub.add_parser("simulate", help="run a scene without a window and summarise it")
     add_scene_options(p)
-    p.add_argument("--steps", type=int, default=100, help="number of steps (default 100)")
+    p.add_argument("--steps", type=STEPS, default=100, help="number of steps (default 100)")
     p.add_argument("--stats", metavar="FILE.jsonl", help="one JSON object per step ('-' for stdout)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing stats file")
 
@@ -71,12 +91,12 @@ def build_parser():
 
     p = sub.add_parser("export", help="render frames (PNG) and a video without a display")
     add_scene_options(p, scene_required=False)
-    p.add_argument("--frames", type=int, default=120, help="number of frames (default 120)")
+    p.add_argument("--frames", type=COUNT, default=120, help="number of frames (default 120)")
     p.add_argument("--out", default="out", help="folder for the PNG frames (default out)")
     p.add_argument("--video", metavar="FILE", help="also write a .mp4 (H.264) or .gif")
     p.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
-    p.add_argument("--fps", type=float, default=30, help="video frame rate (default 30)")
-    p.add_argument("--steps-per-frame", type=int, help="simulation steps per frame (default: real time at --fps)")
+    p.add_argument("--fps", type=POSITIVE, default=30, help="video frame rate (default 30)")
+    p.add_argument("--steps-per-frame", type=COUNT, help="simulation steps per frame (default: real time at --fps)")
     p.add_argument("--compare", action="store_true", help="left copy linear, right copy corotational")
     p.add_argument("--color", default="body", choices=["body", "volume", "strain"], help="colour mode")
     p.add_argument("--renderer", default="auto", choices=["auto", "ggui", "software"],

@@ -30,24 +30,32 @@ def read_coursework_scene(path):
     lines = [(n, line.split()) for n, line in enumerate(text.splitlines(), 1) if line.strip()]
     cursor = iter(lines)
 
-    def next_line(what):
+    def next_line(what, header=None):
         try:
             return next(cursor)
         except StopIteration:
-            raise FemError(f"{path}: ended early, expected {what}") from None
+            promised = f" (line {header} promises it)" if header else ""
+            raise FemError(f"{path}: the file ends early, expected {what}{promised}") from None
 
     n, words = next_line("the number of meshes")
     n_meshes = parse_count(words, path, n, "number of meshes")
+    if n_meshes == 0:
+        raise FemError(f"{path}:{n}: a scene needs at least one mesh, got 0")
+    header = n
     bodies, meshes = [], {}
     for i in range(n_meshes):
-        n, words = next_line(f"mesh line {i + 1} of {n_meshes}")
+        n, words = next_line(f"mesh line {i + 1} of {n_meshes}", header)
         if len(words) != 12:
-            raise FemError(f"{path}:{n}: a mesh line needs 12 fields "
-                           f"(file density E nu isFixed cx cy cz qw qx qy qz), got {len(words)}")
+            raise FemError(f"{path}:{n}: mesh line {i + 1} of {n_meshes} (promised on line {header}) "
+                           f"needs 12 fields (file density E nu isFixed cx cy cz qw qx qy qz), "
+                           f"got {len(words)}")
         density, E, nu, fixed, *pose = parse_numbers(words[1:], path, n)
         mesh_path = path.parent / words[0]
         if mesh_path not in meshes:
-            meshes[mesh_path] = read_tet_mesh(mesh_path)
+            try:
+                meshes[mesh_path] = read_tet_mesh(mesh_path)
+            except FemError as error:
+                raise FemError(f"{path}:{n}: {error}") from None
         material = Material(E, nu, density)
         material.check(f"{path}:{n}")
         if fixed not in (0, 1):
@@ -60,11 +68,13 @@ def read_coursework_scene(path):
 
     n, words = next_line("the number of impulses")
     n_impulses = parse_count(words, path, n, "number of impulses")
+    header = n
     initial = []
     for i in range(n_impulses):
-        n, words = next_line(f"impulse line {i + 1} of {n_impulses}")
+        n, words = next_line(f"impulse line {i + 1} of {n_impulses}", header)
         if len(words) != 5:
-            raise FemError(f"{path}:{n}: an impulse line needs 5 fields (mesh vertex vx vy vz), got {len(words)}")
+            raise FemError(f"{path}:{n}: impulse line {i + 1} of {n_impulses} (promised on line {header}) "
+                           f"needs 5 fields (mesh vertex vx vy vz), got {len(words)}")
         body, vertex = (parse_index(w, path, n) for w in words[:2])
         velocity = np.array(parse_numbers(words[2:], path, n))
         if body >= len(bodies):

@@ -1,0 +1,525 @@
+"""Hard cases and bad inputs, defined once.
+
+tests/test_hard_cases.py, tests/test_bad_input.py and tools/robustness_table.py
+all read these lists, so the table in docs/robustness.md always describes what
+the tests check.
+
+Hard cases (`HARD_CASES`) are small scenes built in Python. Every case runs
+twice, once with linear and once with corotational bodies, and the cases that
+share a time step and a step count run as bodies of one scene
+(`run_hard_cases`): bodies do not interact, and Taichi compiles its kernels once
+per Simulation (seconds), not once per body.
+
+Bad inputs (`BAD_INPUTS`) are small files written into an empty folder plus the
+`main.py simulate` arguments that read them, with the words the `error:` line
+must contain.
+"""
+
+import sys
+from dataclasses import dataclass, field
+from itertools import groupby
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from fem.mesh import TetMesh, prepare_mesh  # noqa: E402
+from fem.scene import (Body, Effects, Initial, Material, Scene, Selection,  # noqa: E402
+                       SolverSettings)
+
+METHODS = ("linear", "corotational")
+DAMPING = Effects(alpha=0.1, beta=0.1)       # the coursework's Rayleigh damping
+
+
+# ---------------------------------------------------------------- meshes
+
+def cube(cells=2, size=(1.0, 1.0, 1.0)):
+    """A box of `size` m centred at the origin, cells^3 cubes of 6 tets each (Kuhn split)."""
+    axes = [np.linspace(-s / 2, s / 2, cells + 1) for s in size]
+    X = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
+    index = np.arange((cells + 1) ** 3).reshape((cells + 1,) * 3)
+    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
+    tets = []
+    for i in range(cells):
+        for j in range(cells):
+            for k in range(cells):
+                corner = [index[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+                tets += [[corner[t] for t in tet] for tet in kuhn]
+    return prepare_mesh(X, np.array(tets), f"cube(cells={cells}, size={size})")
+
+
+def sliver_tet(height=1e-3):
+    """One sliver: four corners of a unit square lifted alternately by +-height (m), so all six
+    edges are about 1.4 m long but the volume is only 2/3 * height and two dihedral angles are
+    nearly 0 and two nearly 180 degrees."""
+    X = np.array([[1.0, 0, height], [-1.0, 0, height], [0, 1.0, -height], [0, -1.0, -height]])
+    return prepare_mesh(X, np.array([[0, 1, 2, 3]]), f"sliver_tet(height={height})")
+
+
+# ---------------------------------------------------------------- hard cases
+
+@dataclass
+class Part:
+    """One body of a hard case: its mesh, material and initial velocities.
+
+    push: [(local vertex id, velocity (3,) m/s)], set at t = 0.
+    """
+
+    mesh: TetMesh
+    E: float = 1e4            # Pa
+    nu: float = 0.3
+    density: float = 1000.0   # kg/m^3
+    push: list = field(default_factory=list)
+
+
+@dataclass
+class HardCase:
+    """A scene that must stay finite and lose energy under damping.
+
+    inverted: start from the rest shape mirrored through the plane x = centre, so
+    every tet is inverted (det F < 0) at t = 0.
+    """
+
+    name: str
+    what: str
+    parts: list
+    dt: float = 0.02          # s
+    steps: int = 100
+    inverted: bool = False
+
+
+def corner_push(speed):
+    """Opposite pushes on two corners of a cube(cells=2): it spins and shears."""
+    return [(0, np.array([0.0, 0.0, speed])), (2, np.array([0.0, 0.0, -speed]))]
+
+
+HARD_CASES = [
+    HardCase("inverted start", "1 m cube mirrored through a plane: all 48 tets inverted at t = 0",
+             [Part(cube())], inverted=True),
+    HardCase("near-incompressible", "nu = 0.4999 (lambda = 1666 E), corners pushed at 5 m/s",
+             [Part(cube(), nu=0.4999, push=corner_push(5.0))]),
+    HardCase("very soft", "E = 10 Pa, density 1000, corners pushed at 5 m/s",
+             [Part(cube(), E=10.0, push=corner_push(5.0))]),
+    HardCase("very stiff", "E = 1e9 Pa, corners pushed at 5 m/s",
+             [Part(cube(), E=1e9, push=corner_push(5.0))]),
+    HardCase("sliver tets", "a 1 x 1 x 0.001 m slab (48 flat tets) and a lone sliver tet "
+             "(volume 7e-4 m^3, edges 1.4 m), pushed at 2 m/s",
+             [Part(cube(size=(1.0, 1.0, 1e-3)), push=corner_push(2.0)),
+              Part(sliver_tet(), push=[(0, np.array([0.0, 0.0, 2.0]))])]),
+    HardCase("stiffness contrast 1e6", "two cubes, E = 1e3 and 1e9 Pa, in one solve, both pushed",
+             [Part(cube(), E=1e3, push=corner_push(5.0)), Part(cube(), E=1e9, push=corner_push(5.0))]),
+    # alone in its solve: the solver's tolerance is relative to the whole scene's right-hand side,
+    # so a 1e11 J body would let the solve stop long before a 1 J body beside it is solved
+    HardCase("huge impulse", "one corner of a 1 m cube set to 1e5 m/s, dt = 0.1 s",
+             [Part(cube(), push=[(0, np.array([1e5, 0.0, 0.0]))])], dt=0.1, steps=40),
+    HardCase("large dt 0.5 s", "a cube pushed at 5 m/s from an inverted start, dt = 0.5 s",
+             [Part(cube(), push=corner_push(5.0))], dt=0.5, steps=20, inverted=True),
+    HardCase("large dt 0.5 s, extremes", "nu = 0.4999 and E = 1e9 cubes pushed at 5 m/s, dt = 0.5 s",
+             [Part(cube(), nu=0.4999, push=corner_push(5.0)), Part(cube(), E=1e9, push=corner_push(5.0))],
+             dt=0.5, steps=20),
+    HardCase("5000 steps", "a 6-tet cube pushed at 3 m/s, 5000 steps of 0.01 s (50 s)",
+             [Part(cube(cells=1), push=[(0, np.array([3.0, 0.0, 0.0]))])], dt=0.01, steps=5000),
+]
+
+
+# (case, method) whose total energy is known to end above its start. One linear solve per step
+# with rotations frozen moves each vertex along a straight line x + dt v: a body turning by
+# theta = omega dt in a step is stretched by about theta^2 / 2 (0.08 for the spin here at
+# dt = 0.5 s), and a very stiff or near-incompressible body stores that stretch as energy that
+# the next step's rotation adds to again. Fixing it needs Newton iterations on the rotations.
+KNOWN_ENERGY_GAIN = {("large dt 0.5 s, extremes", "corotational")}
+
+
+@dataclass
+class Outcome:
+    """What one hard case did with one method (numbers summed over its bodies)."""
+
+    case: HardCase
+    method: str
+    finite: bool              # every position finite after every step
+    energy_start: float       # J, kinetic + elastic
+    energy_end: float
+    energy_max: float         # the largest total energy seen at any step
+    inverted_start: int       # tets with det F <= 0
+    inverted_end: int
+    volume_ratio_end: list    # current / rest volume of each body
+    rejected_steps: int       # steps rejected for non-finite values (whole scene)
+    unconverged_steps: int    # steps whose solve stopped at the iteration cap (whole scene)
+    max_iterations: int       # the most solver iterations of any step (whole scene)
+
+    def summary(self):
+        energy = f"energy {self.energy_start:.3g} -> {self.energy_end:.3g} J"
+        parts = ["finite" if self.finite else "NOT FINITE", energy,
+                 f"inverted {self.inverted_start} -> {self.inverted_end}",
+                 "volume " + ", ".join(f"{r:.3f}" for r in self.volume_ratio_end)]
+        return ", ".join(parts)
+
+
+def build_scene(cases, methods=METHODS):
+    """One scene holding every case's bodies once per method, laid out 3 m apart along x.
+
+    Returns (scene, layout) with layout [(case, method, [body indices])].
+    """
+    bodies, initial, layout = [], [], []
+    for case in cases:
+        for method in methods:
+            ids = []
+            for part in case.parts:
+                shift = np.array([3.0 * len(bodies), 0.0, 0.0])
+                mesh = TetMesh(part.mesh.vertices + shift, part.mesh.tets, part.mesh.source)
+                ids.append(len(bodies))
+                bodies.append(Body(f"{case.name} {method} {len(ids)}", mesh,
+                                   Material(part.E, part.nu, part.density), method))
+                for vertex, velocity in part.push:
+                    initial.append(Initial(Selection(ids[-1], vertices=np.array([vertex])),
+                                           "velocity", (velocity,)))
+            layout.append((case, method, ids))
+    dt, steps = cases[0].dt, cases[0].steps
+    scene = Scene(f"hard cases dt {dt:g} s x {steps}", bodies, effects=DAMPING,
+                  solver=SolverSettings(dt=dt, tolerance=1e-4, max_iterations=400),
+                  initial=initial)
+    return scene, layout
+
+
+def mirror_inverted(sim, layout):
+    """Write the inverted start state: each inverted case's bodies mirrored through x = their centre."""
+    x = sim.positions()
+    for case, _, ids in layout:
+        if case.inverted:
+            for b in ids:
+                s = sim.model.bodies[b].vertices
+                centre = x[s, 0].mean()
+                x[s, 0] = 2 * centre - x[s, 0]
+    sim.state.x.from_numpy(x)
+
+
+def groups(cases=HARD_CASES):
+    """Cases that can share one Simulation: same dt and number of steps."""
+    key = lambda case: (case.dt, case.steps)  # noqa: E731
+    return [list(group) for _, group in groupby(sorted(cases, key=key), key=key)]
+
+
+def run_hard_cases(cases, methods=METHODS):
+    """Run cases that share dt and steps as one Simulation (fem.init must have been called).
+
+    Returns [Outcome] in the order of `layout`: each case once per method.
+    """
+    import fem
+
+    scene, layout = build_scene(cases, methods)
+    sim = fem.Simulation(scene)
+    mirror_inverted(sim, layout)
+
+    def per_case(stats):
+        energy = np.add(stats["body_kinetic_energy"], stats["body_elastic_energy"])
+        inverted = np.asarray(stats["body_inverted_tets"])
+        return ([float(energy[ids].sum()) for _, _, ids in layout],
+                [int(inverted[ids].sum()) for _, _, ids in layout])
+
+    energy_start, inverted_start = per_case(sim.stats())
+    energy_max = list(energy_start)
+    finite = [True] * len(layout)
+    rejected = unconverged = most_iterations = 0
+    sample = max(1, cases[0].steps // 100)      # energies every `sample` steps (stats cost a pass)
+    for k in range(cases[0].steps):
+        info = sim.step()
+        rejected += not info["finite"]
+        unconverged += not info["converged"]
+        most_iterations = max(most_iterations, info["solver_iters"])
+        if k % sample == sample - 1:
+            energy, _ = per_case(sim.stats())
+            energy_max = [max(a, b) for a, b in zip(energy_max, energy)]
+            x = sim.positions()
+            finite = [ok and bool(np.isfinite(x[vertex_range(sim, ids)]).all())
+                      for ok, (_, _, ids) in zip(finite, layout)]
+    stats = sim.stats()
+    energy_end, inverted_end = per_case(stats)
+    return [Outcome(case, method, finite[i], energy_start[i], energy_end[i], energy_max[i],
+                    inverted_start[i], inverted_end[i], [stats["volume_ratio"][b] for b in ids],
+                    rejected, unconverged, most_iterations)
+            for i, (case, method, ids) in enumerate(layout)]
+
+
+def vertex_range(sim, body_ids):
+    """Global vertex ids of the given bodies."""
+    return np.concatenate([np.arange(sim.model.bodies[b].vertices.start, sim.model.bodies[b].vertices.stop)
+                           for b in body_ids])
+
+
+# ---------------------------------------------------------------- solver failures, forced
+
+def forced_failures(capture):
+    """Force the two failures a step must report, on one small Simulation (fem.init first).
+
+    1. The solve is capped at 2 iterations for a tolerance of 1e-12 (nu = 0.4999 needs dozens):
+       every step must say converged False, 2 iterations, and its residual.
+    2. NaN is written into one velocity: the step must be rejected, the positions kept, and a
+       warning printed once however many steps fail.
+    capture: returns the text printed on stderr since its last call.
+    Returns {"capped": [step info], "nan": [step info], "before", "after": positions, "stderr": text}.
+    """
+    import fem
+
+    scene, _ = build_scene([HARD_CASES[1]], ["corotational"])
+    sim = fem.Simulation(scene, tolerance=1e-12, max_iterations=2)
+    capped = [sim.step() for _ in range(3)]
+    capture()
+    v = sim.velocities()
+    v[3] = np.nan
+    sim.state.v.from_numpy(v)
+    before = sim.positions()
+    nan = [sim.step() for _ in range(3)]
+    return {"capped": capped, "nan": nan, "before": before, "after": sim.positions(), "stderr": capture()}
+
+
+# ---------------------------------------------------------------- hard cases through the command line
+
+CLI_SCENE = """\
+name = "extremes"
+description = "near-incompressible, very stiff and very soft cubes, a 1e5 m/s impulse, dt 0.5 s"
+[solver]
+dt = 0.5
+[effects]
+damping = {{ alpha = 0.1, beta = 0.1 }}
+[[body]]
+name = "rubber"
+mesh = {{ file = "cube.mesh" }}
+material = {{ E = 1e4, nu = 0.4999, density = 1000.0 }}
+method = "{method}"
+[[body]]
+name = "steel"
+mesh = {{ file = "cube.mesh" }}
+material = {{ E = 1e9, nu = 0.3, density = 8000.0 }}
+position = [3.0, 0.0, 0.0]
+method = "{method}"
+[[body]]
+name = "jelly"
+mesh = {{ file = "cube.mesh" }}
+material = {{ E = 10.0, nu = 0.3, density = 1000.0 }}
+position = [6.0, 0.0, 0.0]
+method = "{method}"
+[[impulse]]
+body = "rubber"
+vertices = [0]
+delta_v = [1e5, 0.0, 0.0]
+[[impulse]]
+body = "jelly"
+vertices = [0]
+delta_v = [0.0, 1e5, 0.0]
+"""
+
+# (method, precision): `main.py simulate extremes.toml` must finish with exit 0, every step kept
+# and no NaN in its summary.
+CLI_HARD_CASES = [("corotational", "f32"), ("linear", "f64")]
+
+
+
+
+def run_cli_case(method, precision, folder, steps=10):
+    """Run `main.py simulate` on CLI_SCENE in a fresh Python process; returns the CompletedProcess."""
+    import subprocess
+
+    (Path(folder) / "cube.mesh").write_text(CUBE_MESH)
+    (Path(folder) / "extremes.toml").write_text(CLI_SCENE.format(method=method))
+    return subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", "extremes.toml",
+                           "--steps", str(steps), "--precision", precision],
+                          cwd=folder, capture_output=True, text=True, timeout=300)
+
+
+# ---------------------------------------------------------------- bad input
+
+# A unit cube of 5 tets, MEDIT, 1-based; line 4 is "Vertices", lines 6-13 the vertices,
+# line 14 "Tetrahedra", lines 16-20 the tets.
+CUBE_MESH = """MeshVersionFormatted 1
+Dimension
+3
+Vertices
+8
+0 0 0 1
+1 0 0 1
+0 1 0 1
+1 1 0 1
+0 0 1 1
+1 0 1 1
+0 1 1 1
+1 1 1 1
+Tetrahedra
+5
+1 2 3 5 0
+4 2 3 8 0
+6 2 5 8 0
+7 3 5 8 0
+2 3 5 8 0
+End
+"""
+
+COURSEWORK_SCENE = """2
+cube.mesh 100 1e4 0.3 0 0 3 0 1 0 0 0
+cube.mesh 100 2e4 0.4 0 3 3 0 1 0 0 0
+2
+0 1 0 10 0
+1 7 -10 0 0
+"""
+
+TOML_SCENE = """name = "two cubes"
+[solver]
+dt = 0.02
+tolerance = 1e-4
+[effects]
+damping = { alpha = 0.1, beta = 0.1 }
+[[body]]
+name = "a"
+mesh = { file = "cube.mesh" }
+material = { E = 1e4, nu = 0.3, density = 100.0 }
+[[initial]]
+body = "a"
+vertices = [1]
+velocity = [0.0, 10.0, 0.0]
+"""
+
+
+def edit(text, line, new):
+    """`text` with 1-based `line` replaced by `new` (None deletes it)."""
+    lines = text.splitlines()
+    lines[line - 1:line] = [] if new is None else [new]
+    return "\n".join(lines) + "\n"
+
+
+def replace_once(text, old, new):
+    assert old in text, old
+    return text.replace(old, new, 1)
+
+
+@dataclass
+class BadInput:
+    """A broken file or parameter. files: {name: text} written into an empty folder;
+    args: what follows `main.py simulate`; expect: words the error line must contain."""
+
+    name: str
+    files: dict
+    args: list
+    expect: list
+
+
+def mesh_case(name, text, expect):
+    return BadInput(name, {"cube.mesh": text, "s.toml": TOML_SCENE}, ["s.toml"], ["cube.mesh", *expect])
+
+
+def toml_case(name, old, new, expect):
+    return BadInput(name, {"cube.mesh": CUBE_MESH, "s.toml": replace_once(TOML_SCENE, old, new)},
+                    ["s.toml"], ["s.toml", *expect])
+
+
+def coursework_case(name, text, expect, mesh=CUBE_MESH):
+    return BadInput(name, {"cube.mesh": mesh, "c-scene.txt": text}, ["c-scene.txt"], ["c-scene.txt", *expect])
+
+
+def option_case(name, args, expect):
+    return BadInput(name, {"cube.mesh": CUBE_MESH, "s.toml": TOML_SCENE}, ["s.toml", *args], expect)
+
+
+BAD_INPUTS = [
+    # .mesh files
+    mesh_case("empty mesh file", "", ["empty"]),
+    mesh_case("truncated mesh (ends inside Vertices)", "\n".join(CUBE_MESH.splitlines()[:9]) + "\n",
+              [":4:", "8 vertices", "ends after 4"]),
+    mesh_case("truncated mesh (ends inside a vertex line)", "\n".join(CUBE_MESH.splitlines()[:8]) + "\n0 1",
+              [":9:", "vertex 3", "2 value"]),
+    mesh_case("vertex count too large", edit(CUBE_MESH, 5, "9"), [":14:", "9 vertices", "'Tetrahedra'"]),
+    mesh_case("vertex count too small", edit(CUBE_MESH, 5, "7"), [":13:", "keyword"]),
+    mesh_case("tet count too large", edit(CUBE_MESH, 15, "6"), [":21:", "6 tet", "'End'"]),
+    mesh_case("tet index out of range", edit(CUBE_MESH, 20, "2 3 5 9 0"), [":20:", "tet 4", "vertex"]),
+    mesh_case("tet index 0 and 8 in a 1-based file", edit(CUBE_MESH, 16, "0 2 3 8 0"),
+              [":16:", "tet 0", "vertex 8", "8 vertices"]),
+    mesh_case("non-numeric coordinate", edit(CUBE_MESH, 7, "1 zero 0 1"), [":7:", "'zero'"]),
+    mesh_case("NaN coordinate", edit(CUBE_MESH, 7, "1 nan 0 1"), [":7:", "non-finite", "'nan'"]),
+    mesh_case("infinite coordinate", edit(CUBE_MESH, 7, "1 -inf 0 1"), [":7:", "non-finite"]),
+    mesh_case("non-integer tet index", edit(CUBE_MESH, 16, "1 2 3.5 5 0"), [":16:", "'3.5'"]),
+    mesh_case("zero-volume tet", edit(CUBE_MESH, 10, "0.5 0.5 0 1"), [":16:", "tet 0", "zero volume"]),
+    mesh_case("tet repeating a vertex", edit(CUBE_MESH, 16, "1 2 2 5 0"), [":16:", "repeats"]),
+    mesh_case("no Tetrahedra section", "\n".join(CUBE_MESH.splitlines()[:13]) + "\nEnd\n", ["no tet"]),
+    # TOML scenes
+    BadInput("scene file missing", {}, ["nothere.toml"], ["nothere.toml", "no such"]),
+    BadInput("built-in scene name misspelt", {}, ["cube68"], ["cube68", "did you mean 'cube86'"]),
+    toml_case("scene names a missing mesh", '"cube.mesh"', '"cubes.mesh"', ["cubes.mesh", "not found"]),
+    toml_case("not TOML", "[solver]", "[solver", ["not valid TOML"]),
+    toml_case("E = 0", "E = 1e4", "E = 0.0", ["E must be > 0"]),
+    toml_case("E < 0", "E = 1e4", "E = -5e3", ["E must be > 0"]),
+    toml_case("nu = 0.5", "nu = 0.3", "nu = 0.5", ["nu must be in (-1, 0.5)"]),
+    toml_case("nu = -1", "nu = 0.3", "nu = -1.0", ["nu must be in (-1, 0.5)"]),
+    toml_case("density = 0", "density = 100.0", "density = 0.0", ["density must be > 0"]),
+    toml_case("dt = 0", "dt = 0.02", "dt = 0.0", ["dt must be > 0"]),
+    toml_case("dt < 0", "dt = 0.02", "dt = -0.01", ["dt must be > 0"]),
+    toml_case("tolerance = 0", "tolerance = 1e-4", "tolerance = 0.0", ["tolerance must be > 0"]),
+    toml_case("misspelt key", "[effects]", "[efects]", ["unknown key 'efects'", "did you mean 'effects'"]),
+    toml_case("misspelt material key", "E = 1e4", "young = 1e4", ["'young'"]),
+    toml_case("wrong type: E is a string", "E = 1e4", 'E = "stiff"', ["E", "expected a number"]),
+    toml_case("wrong type: dt is a list", "dt = 0.02", "dt = [0.02]", ["solver.dt", "expected a number"]),
+    toml_case("wrong type: material is a number", "material = { E = 1e4, nu = 0.3, density = 100.0 }",
+              "material = 5", ["material", "expected a table"]),
+    toml_case("wrong type: dt is a string", "dt = 0.02", 'dt = "fast"', ["solver.dt", "expected a number"]),
+    toml_case("initial velocity on a missing vertex", "vertices = [1]", "vertices = [99]",
+              ["vertex 99 does not exist"]),
+    toml_case("NaN in a TOML number", "dt = 0.02", "dt = nan", ["dt", "finite"]),
+    # coursework scenes
+    BadInput("coursework scene missing", {}, ["gone-scene.txt"], ["gone-scene.txt", "no such"]),
+    coursework_case("coursework: mesh file missing", replace_once(COURSEWORK_SCENE, "cube.mesh", "gone.mesh"),
+                    ["gone.mesh", "no such file"]),
+    coursework_case("coursework: header promises 3 meshes, has 2", edit(COURSEWORK_SCENE, 1, "3"),
+                    [":4:", "mesh line 3 of 3"]),
+    coursework_case("coursework: header promises 3 impulses, has 2", edit(COURSEWORK_SCENE, 4, "3"),
+                    ["impulse line 3 of 3", "line 4 promises"]),
+    coursework_case("coursework: impulse on a vertex that does not exist", edit(COURSEWORK_SCENE, 6, "1 8 -10 0 0"),
+                    [":6:", "vertex 8", "8 vertices"]),
+    coursework_case("coursework: impulse on a mesh that does not exist", edit(COURSEWORK_SCENE, 6, "2 1 -10 0 0"),
+                    [":6:", "mesh 2"]),
+    coursework_case("coursework: E = 0", replace_once(COURSEWORK_SCENE, "1e4", "0"), [":2:", "E must be > 0"]),
+    coursework_case("coursework: nu = 0.5", replace_once(COURSEWORK_SCENE, "0.3", "0.5"), [":2:", "nu must be"]),
+    coursework_case("coursework: density < 0", replace_once(COURSEWORK_SCENE, "100", "-100"),
+                    [":2:", "density must be > 0"]),
+    coursework_case("coursework: non-numeric field", replace_once(COURSEWORK_SCENE, "1e4", "soft"),
+                    [":2:", "'soft'"]),
+    coursework_case("coursework: NaN field", replace_once(COURSEWORK_SCENE, "1e4", "nan"), [":2:", "finite"]),
+    coursework_case("coursework: empty", "", ["ends early"]),
+    coursework_case("coursework: mesh with a NaN vertex", COURSEWORK_SCENE, ["cube.mesh:7:", "non-finite"],
+                    mesh=edit(CUBE_MESH, 7, "1 nan 0 1")),
+    # command-line parameters
+    option_case("--dt 0", ["--dt", "0"], ["--dt", "must be > 0"]),
+    option_case("--dt -0.1", ["--dt", "-0.1"], ["--dt", "must be > 0"]),
+    option_case("--tol 0", ["--tol", "0"], ["--tol", "must be > 0"]),
+    option_case("--dt nan", ["--dt", "nan"], ["--dt", "must be > 0"]),
+    option_case("--dt inf", ["--dt", "inf"], ["--dt", "must be > 0"]),
+    option_case("--max-iters 0", ["--max-iters", "0"], ["--max-iters", "must be >= 1"]),
+    option_case("--steps -1", ["--steps", "-1"], ["--steps", "must be >= 0"]),
+    option_case("--set with an unknown key", ["--set", "solver.dtt=0.1"], ["unknown key 'dtt'", "did you mean 'dt'"]),
+    option_case("--set E = -1", ["--set", "body.a.material.E=-1"], ["E must be > 0"]),
+]
+
+
+def run_bad_input(case, folder):
+    """Write the case's files into the empty `folder` and run `main.py simulate` there, in this process.
+
+    Returns (exit code, text printed on stderr).
+    """
+    import contextlib
+    import io
+    import os
+
+    import main
+
+    for name, text in case.files.items():
+        (Path(folder) / name).write_text(text)
+    stderr, cwd = io.StringIO(), os.getcwd()
+    os.chdir(folder)
+    try:
+        with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+            try:
+                code = main.main(["simulate", "--steps", "1", *case.args])
+            except SystemExit as exit:
+                code = exit.code
+    finally:
+        os.chdir(cwd)
+    return code, stderr.getvalue()
