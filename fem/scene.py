@@ -251,11 +251,15 @@ class Table:
     def __contains__(self, key):
         return key in self.data
 
+    def key_path(self, key):
+        """Where a key sits, for messages: 'x.toml: solver.dt', 'x.toml: body[0].material.E'."""
+        return f"{self.where}.{key}" if ": " in self.where else f"{self.where}: {key}"
+
     def get(self, key, kind, default=None):
         if key not in self.data:
             return default
         value = self.data[key]
-        return check_type(value, kind, f"{self.where}.{key}")
+        return check_type(value, kind, self.key_path(key))
 
     def require(self, key, kind):
         if key not in self.data:
@@ -263,7 +267,7 @@ class Table:
         return self.get(key, kind)
 
     def table(self, key, known):
-        return Table(self.data.get(key, {}), f"{self.where}.{key}", known)
+        return Table(self.data.get(key, {}), self.key_path(key), known)
 
 
 def check_type(value, kind, where):
