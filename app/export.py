@@ -181,13 +181,8 @@ def frame_size(text: str, multiple: int) -> tuple[int, int]:
 
 
 def check_arguments(args, out: Path, video: Path | None):
-    """FemError for what cannot work, before any time is spent."""
-    if args.frames < 1:
-        raise fem.FemError(f"--frames: must be at least 1, got {args.frames}")
-    if not args.fps > 0:
-        raise fem.FemError(f"--fps: must be > 0, got {args.fps}")
-    if args.steps_per_frame is not None and args.steps_per_frame < 1:
-        raise fem.FemError(f"--steps-per-frame: must be at least 1, got {args.steps_per_frame}")
+    """FemError for what cannot work, before any time is spent (main.py's parser
+    has already checked each number on its own)."""
     if args.compare and args.method:
         raise fem.FemError(f"--compare runs both methods side by side; drop --{args.method}")
     if out.exists() and not out.is_dir():
