@@ -69,7 +69,7 @@ class Model:
         density = np.array([b.material.density for b in scene.bodies])[self.tet_body]
         mass = np.zeros(self.n_vertices)
         np.add.at(mass, T.ravel(), np.repeat(density * W / 4, 4))
-        free = np.ones(self.n_vertices)
+        free = (mass > 0).astype(float)          # a vertex in no tet has no mass: keep it still
         for i, b in enumerate(scene.bodies):
             free[b.pinned + v_off[i]] = 0.0
         order = np.argsort(T.ravel(), kind="stable")
@@ -179,6 +179,8 @@ def apply_initial(init, x, v, ids, mass):
         x[ids] = centre + amount * along[:, None] * axis + across / np.sqrt(amount)
     elif init.kind == "twist_shape":
         x[ids] = centre + rotate_about(d, axis, 0.5 * amount * s)
+    elif init.kind == "rotate":   # rigid: strain-free, but linear FEM cannot tell it from strain
+        x[ids] = centre + rotate_about(d, axis, np.full(len(d), amount))
     else:
         raise ValueError(init.kind)
 

@@ -18,6 +18,7 @@ from fem.mesh import TetMesh, signed_volumes
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 METHODS = ("linear", "corotational")
 SOLVERS = ("pcg", "jacobi")
+ROTATIONS = ("iterative", "svd")
 
 
 @dataclass
@@ -63,7 +64,7 @@ class Initial:
     """An initial condition applied to a selection at t = 0.
 
     kind: "velocity" (value: (3,) m/s, set), "spin" / "twist" (value: axis, omega rad/s),
-    "stretch" / "squash" / "twist_shape" (value: axis, factor or angle in rad).
+    "stretch" / "squash" / "twist_shape" / "rotate" (value: axis, factor or angle in rad).
     """
 
     selection: Selection
@@ -102,6 +103,7 @@ class SolverSettings:
     tolerance: float = 1e-4             # relative residual |r| / |b|
     max_iterations: int = 200
     jacobi_omega: float | None = None   # None: chosen from a spectral estimate
+    rotations: str = "iterative"        # "iterative" (warm-started, SVD when inverted) | "svd"
 
     def check(self, where):
         if not self.dt > 0:
@@ -112,6 +114,8 @@ class SolverSettings:
             raise FemError(f"{where}: tolerance must be > 0, got {self.tolerance}")
         if not self.max_iterations >= 1:
             raise FemError(f"{where}: max_iterations must be >= 1, got {self.max_iterations}")
+        if self.rotations not in ROTATIONS:
+            raise FemError(f"{where}: rotations must be one of {ROTATIONS}, got {self.rotations!r}")
         if self.jacobi_omega is not None and not 0 < self.jacobi_omega < 2:
             raise FemError(f"{where}: jacobi_omega must be in (0, 2), got {self.jacobi_omega}")
 
@@ -210,7 +214,8 @@ def load_scene(ref, overrides=None):
     """A Scene from a built-in name, a .toml path or a coursework *-scene.txt path.
 
     overrides: ["key.path=value", ...] applied to a TOML scene before it is read,
-    e.g. "solver.dt=0.01" or "body.soft.mesh.cells=[8, 8, 8]" (a body by name or index).
+    e.g. "solver.dt=0.01" or "body.soft.mesh.cells=[8, 8, 8]" (a body by name or index,
+    or * for every body).
     """
     path = Path(ref)
     if path.suffix == ".txt":
@@ -314,6 +319,10 @@ def apply_override(data, text):
         value = raw.strip()
     node, parts = data, key.strip().split(".")
     for i, part in enumerate(parts[:-1]):
+        if isinstance(node, list) and part == "*":   # every entry: body.*.scale=2
+            for entry in node:
+                apply_override(entry, f"{'.'.join(parts[i + 1:])}={raw}")
+            return
         if isinstance(node, list):
             names = [b.get("name") for b in node]
             if part in names:
@@ -359,7 +368,7 @@ def read_toml_scene(path, overrides=()):
         bodies=bodies,
         effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
         solver=read_solver(top.table("solver", ["dt", "method", "tolerance", "max_iterations",
-                                                 "jacobi_omega"])),
+                                                 "jacobi_omega", "rotations"])),
     )
     scene.solver.check(f"{path}: solver")
     for i, raw in enumerate(list_of_tables(data, "initial", path)):
@@ -476,7 +485,7 @@ def select_vertices(sel, bodies, where):
 
 
 def read_initial(raw, where, bodies):
-    kinds = ["velocity", "spin", "twist", "stretch", "squash", "twist_shape"]
+    kinds = ["velocity", "spin", "twist", "stretch", "squash", "twist_shape", "rotate"]
     t = Table(raw, where, REGION_KEYS + kinds)
     sel = read_region(t, None, bodies, where)
     given = [k for k in kinds if k in t]
@@ -492,7 +501,7 @@ def read_initial(raw, where, bodies):
     axis = axis / np.linalg.norm(axis)
     if kind in ("spin", "twist"):
         return Initial(sel, kind, (axis, spec.require("omega", "float")))
-    if kind == "twist_shape":
+    if kind in ("twist_shape", "rotate"):
         return Initial(sel, kind, (axis, np.radians(spec.require("angle_deg", "float"))))
     factor = spec.require("factor", "float")
     if not factor > 0:
@@ -535,4 +544,5 @@ def read_solver(t):
     s.tolerance = t.get("tolerance", "float", s.tolerance)
     s.max_iterations = t.get("max_iterations", "int", s.max_iterations)
     s.jacobi_omega = t.get("jacobi_omega", "float", None)
+    s.rotations = t.get("rotations", "str", s.rotations)
     return s

@@ -90,7 +90,7 @@ class Simulation:
         cM, cK = self.coefficients
 
         if corot:
-            s.extract_rotations(x)
+            s.extract_rotations(x, self.settings.rotations == "svd")
             ti.sync()
         rotation_ms = 1e3 * (time.perf_counter() - start)
         if self.settings.method == "jacobi":
@@ -99,12 +99,18 @@ class Simulation:
         if corot or key != self.preconditioner_key:
             s.build_preconditioner(cM, cK, corot)   # linear: once, as A never changes
             self.preconditioner_key = key
+        if self.scene.effects.ground is not None:
+            s.detect_contacts(x, v, dt)
         s.elastic_forces(x, corot)
         bb = s.assemble_rhs(x, v, dt)
         if self.settings.method == "pcg":
             iterations, rr = self.solve_pcg(bb, cM, cK, corot)
         else:
             iterations, rr = self.solve_jacobi(bb, cM, cK, corot)
+        if self.scene.effects.ground is not None:
+            s.beta[None] = 0.0
+            s.stiffness_product(s.solution, s.solution, corot)
+            s.ground_reaction(cM, cK)
         bad = s.commit(x, v, dt)
         finite = bad == 0
         if finite:

@@ -17,8 +17,8 @@ argument, and rotations are only extracted when some body is corotational.
 
 import taichi as ti
 
-from fem.elastic import (corner_forces, edge_matrix, is_finite, polar_rotation,
-                         stiffness_block, stress_map)
+from fem.elastic import (corner_forces, edge_matrix, is_finite, polar_rotation, quaternion_matrix,
+                         refine_rotation, stiffness_block, stress_map)
 
 
 @ti.data_oriented
@@ -30,16 +30,20 @@ class ImplicitSolver:
         self.model = model
         self.has_gravity = effects.gravity is not None    # compile-time switch
         self.gravity = effects.gravity or (0.0, 0.0, 0.0)  # m/s^2
-        self.ground = effects.ground                      # compile-time: None or height
+        self.has_ground = effects.ground is not None      # compile-time switch
+        self.ground = effects.ground or 0.0               # plane height y, m
         self.friction = effects.friction
         self.pins = model.has_pins                        # compile-time: filter pinned rows
         vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
         self.rotations = ti.Matrix.field(3, 3, float, m)  # R per tet (identity for linear tets)
+        self.quaternions = ti.Vector.field(4, float, m)   # the same R as (x, y, z, w): next step's warm start
         self.corner = vec(4 * m)                          # per-corner values before the gather
         self.b, self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n), vec(n)
         self.solution = vec(n)                            # v_new while solving
         self.block_inverse = ti.Matrix.field(3, 3, float, n)  # Jacobi preconditioner, inverse 3x3 blocks of A
         self.x_backup, self.v_backup = vec(n), vec(n)
+        self.contact = ti.field(ti.i32, n if self.has_ground else 1)   # 1: on the ground this step
+        self.pressed = ti.field(ti.i32, n if self.has_ground else 1)   # 1: the ground pushed it last step
         self.rz = ti.field(float, ())                     # PCG scalars stay on the device
         self.rz_new = ti.field(float, ())
         self.pAp = ti.field(float, ())
@@ -52,6 +56,7 @@ class ImplicitSolver:
     def reset_rotations(self):
         for e in self.rotations:
             self.rotations[e] = ti.Matrix.identity(float, 3)
+            self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
 
     @ti.func
     def deformation_gradient(self, x: ti.template(), e):
@@ -59,11 +64,25 @@ class ImplicitSolver:
         return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]]) @ self.model.Bm[e]
 
     @ti.kernel
-    def extract_rotations(self, x: ti.template()):
-        """R = polar rotation of F for every corotational tet."""
+    def extract_rotations(self, x: ti.template(), svd: ti.template()):
+        """R = polar rotation of F for every corotational tet.
+
+        svd=False: warm-started iterative extraction for tets with det F > 0, and
+        the SVD only for inverted or flat tets, where its reflection-safe answer
+        matters; svd=True: the SVD for every tet (the reference).
+        """
         for e in self.rotations:
             if self.model.corotational[e]:
-                self.rotations[e] = polar_rotation(self.deformation_gradient(x, e))
+                F = self.deformation_gradient(x, e)
+                if ti.static(not svd):
+                    if F.determinant() > 0:
+                        q = refine_rotation(F, self.quaternions[e], 8)
+                        self.quaternions[e] = q
+                        self.rotations[e] = quaternion_matrix(q)
+                    else:
+                        self.rotations[e] = polar_rotation(F)
+                else:
+                    self.rotations[e] = polar_rotation(F)
 
     @ti.kernel
     def elastic_forces(self, x: ti.template(), corot: ti.template()):
@@ -113,16 +132,21 @@ class ImplicitSolver:
 
     @ti.func
     def filtered(self, i, a):
-        """Zero the rows of pinned vertices (filtered CG, Baraff & Witkin 1998)."""
+        """Zero the constrained rows: pinned vertices, and the normal of those on the ground
+        (filtered CG, Baraff & Witkin 1998)."""
         if ti.static(self.pins):
             a *= self.model.free[i]
+        if ti.static(self.has_ground):
+            if self.contact[i]:
+                a[1] = 0.0
         return a
 
     @ti.kernel
     def build_preconditioner(self, cM: float, cK: float, corot: ti.template()):
         """block_inverse <- inverse of the 3x3 diagonal blocks of A = cM M + cK K(R)."""
         for i in self.block_inverse:
-            block = cM * self.model.mass[i] * ti.Matrix.identity(float, 3)
+            # a pinned vertex keeps an identity block, so the inverse exists even where mass is 0
+            block = (cM * self.model.mass[i] + 1.0 - self.model.free[i]) * ti.Matrix.identity(float, 3)
             for j in range(self.model.adjacency_start[i], self.model.adjacency_start[i + 1]):
                 slot = self.model.adjacency[j]
                 e, k = slot // 4, slot % 4
@@ -134,24 +158,34 @@ class ImplicitSolver:
                 if ti.static(corot):
                     R = self.rotations[e]
                 block += cK * stiffness_block(g, R, self.model.rest_volume[e], self.model.mu[e], self.model.lam[e])
-            self.block_inverse[i] = self.filtered(i, block.inverse())
+            self.block_inverse[i] = block.inverse()
 
     @ti.kernel
     def assemble_rhs(self, x: ti.template(), v: ti.template(), dt: float) -> float:
-        """b <- M v + dt (f_elastic + M g); solution <- v (warm start). Returns |b|^2."""
-        bb = 0.0
+        """b <- M v + dt (f_elastic + M g); solution <- v (warm start).
+
+        Returns the squared scale the residual is measured against: the sum of the
+        squared sizes of b's three terms. Not |b|^2 itself: for a body resting under
+        gravity the elastic force cancels gravity and |b| -> 0, which would ask the
+        solve for ever more digits of nothing.
+        """
+        scale = 0.0
         for i in self.b:
             m = self.model.mass[i]
             f = self.gather(i)
+            g = ti.Vector.zero(float, 3)
             if ti.static(self.has_gravity):
-                f += m * ti.Vector(self.gravity, dt=float)
-            b = self.filtered(i, m * v[i] + dt * f)
-            self.b[i] = b
+                g = m * ti.Vector(self.gravity, dt=float)
+            self.b[i] = m * v[i] + dt * (f + g)    # kept whole: the ground's reaction is read from it
             self.solution[i] = self.filtered(i, v[i])
+            if ti.static(self.has_ground):
+                if self.contact[i]:   # prescribed: land exactly on the plane this step
+                    self.solution[i][1] = (self.ground - x[i][1]) / dt
             self.p[i] = ti.Vector.zero(float, 3)
-            bb += b.dot(b)
+            scale += (self.filtered(i, m * v[i]).norm_sqr() + dt * dt * self.filtered(i, f).norm_sqr()
+                      + dt * dt * self.filtered(i, g).norm_sqr())
         self.beta[None] = 0.0
-        return bb
+        return scale
 
     @ti.kernel
     def start_residual(self, cM: float, cK: float) -> float:
@@ -160,7 +194,7 @@ class ImplicitSolver:
         for i in self.r:
             Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
             r = self.filtered(i, self.b[i] - Ax)
-            z = self.block_inverse[i] @ r
+            z = self.filtered(i, self.block_inverse[i] @ r)
             self.r[i], self.z[i] = r, z
             rz += r.dot(z)
             rr += r.dot(r)
@@ -189,7 +223,7 @@ class ImplicitSolver:
         for i in self.r:
             self.solution[i] += alpha * self.p[i]
             r = self.r[i] - alpha * self.Ap[i]
-            z = self.block_inverse[i] @ r
+            z = self.filtered(i, self.block_inverse[i] @ r)
             self.r[i], self.z[i] = r, z
             rz += r.dot(z)
             rr += r.dot(r)
@@ -206,7 +240,7 @@ class ImplicitSolver:
         for i in self.r:
             Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
             r = self.filtered(i, self.b[i] - Ax)
-            self.solution[i] += omega * (self.block_inverse[i] @ r)
+            self.solution[i] += omega * self.filtered(i, self.block_inverse[i] @ r)
             rr += r.dot(r)
         return rr
 
@@ -228,12 +262,35 @@ class ImplicitSolver:
             x[i], v[i] = self.x_backup[i], self.v_backup[i]
 
     @ti.kernel
+    def detect_contacts(self, x: ti.template(), v: ti.template(), dt: float):
+        """Active set of the ground constraint: a free vertex is in contact when its velocity
+        would take it below the plane this step, or when the plane still pushed it last step.
+        The solve then fixes its normal velocity so that it lands on the plane."""
+        for i in x:
+            self.contact[i] = 0
+            if self.model.free[i] > 0 and (x[i][1] + dt * v[i][1] < self.ground or self.pressed[i]):
+                self.contact[i] = 1
+
+    @ti.kernel
+    def ground_reaction(self, cM: float, cK: float):
+        """pressed <- contact vertices the plane pushes up: (A v - b)_y > 0 (after
+        stiffness_product(solution)); the others may lift off next step."""
+        for i in self.pressed:
+            self.pressed[i] = 0
+            if self.contact[i]:
+                Av = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
+                if Av[1] - self.b[i][1] > 0:
+                    self.pressed[i] = 1
+
+    @ti.kernel
     def ground_contact(self, x: ti.template(), v: ti.template()):
-        """Vertices below the ground plane go back onto it; their normal velocity stops
-        and friction removes part of the tangential one."""
+        """Friction on the vertices in contact (removes part of the tangential velocity),
+        and no vertex left below the plane."""
         for i in x:
             if x[i][1] < self.ground:
-                x[i][1] = self.ground
+                self.pressed[i] = 1      # caught below the plane: in contact next step
+            if self.contact[i] or x[i][1] < self.ground:
+                x[i][1] = ti.max(x[i][1], self.ground)
                 v[i][1] = ti.max(v[i][1], 0.0)
                 v[i][0] *= 1.0 - self.friction
                 v[i][2] *= 1.0 - self.friction

@@ -56,13 +56,14 @@ def test_single_tet_stiffness_is_symmetric_psd_with_six_rigid_modes(f64):
     np.testing.assert_allclose(K, reference_Ke(mesh.vertices, 1e5, 0.3), atol=1e-9 * np.abs(K).max())
 
 
-def test_corotational_stiffness_is_rotated_Ke(f64):
+@pytest.mark.parametrize("svd", [False, True])
+def test_corotational_stiffness_is_rotated_Ke(f64, svd):
     mesh = prepare_mesh(ONE_TET, np.array([[0, 1, 2, 3]]), "one tet")
     sim = fem.Simulation(make_scene(mesh, "corotational", E=1e5, nu=0.3))
     angle = 0.7
     R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
     sim.state.x.from_numpy(mesh.vertices @ R.T + [0.3, -0.2, 0.5])
-    sim.solver.extract_rotations(sim.state.x)
+    sim.solver.extract_rotations(sim.state.x, svd)
     np.testing.assert_allclose(sim.solver.rotations.to_numpy()[0], R, atol=1e-9)
     Rb = np.kron(np.eye(4), R)
     np.testing.assert_allclose(stiffness_from_operator(sim), Rb @ reference_Ke(mesh.vertices, 1e5, 0.3) @ Rb.T,
@@ -98,7 +99,7 @@ def test_matrix_free_product_equals_assembled_matrix(f64, method):
     x = mesh.vertices @ np.linalg.qr(rng.standard_normal((3, 3)))[0].T + 0.05 * rng.standard_normal(mesh.vertices.shape)
     sim.state.x.from_numpy(x)
     if method == "corotational":
-        sim.solver.extract_rotations(sim.state.x)
+        sim.solver.extract_rotations(sim.state.x, False)
     cM, cK = 1.1, 2e-3
     A = assembled_matrix(sim, cM, cK)
     u = rng.standard_normal((sim.model.n_vertices, 3))
@@ -162,3 +163,22 @@ def test_rotation_extraction_is_proper_for_degenerate_and_inverted_F(f64):
             S = Ri.T @ Fi
             np.testing.assert_allclose(S, S.T, atol=1e-9)
             assert np.linalg.eigvalsh(0.5 * (S + S.T)).min() > -1e-9
+
+
+def test_iterative_rotations_match_the_svd(f64):
+    """The warm-started extraction lands on the SVD's polar rotation, inverted tets included."""
+    mesh = box_mesh(3)
+    sim = fem.Simulation(make_scene(mesh, "corotational"))
+    rng = np.random.default_rng(3)
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    x = mesh.vertices @ Q.T + 0.08 * rng.standard_normal(mesh.vertices.shape)
+    x[0] = x[1] + (x[1] - x[0]) * 3          # turn some tets inside out
+    sim.state.x.from_numpy(x)
+    sim.solver.extract_rotations(sim.state.x, True)
+    exact = sim.solver.rotations.to_numpy()
+    for _ in range(3):                       # three warm-started steps from the identity
+        sim.solver.extract_rotations(sim.state.x, False)
+    iterative = sim.solver.rotations.to_numpy()
+    np.testing.assert_allclose(iterative, exact, atol=1e-6)
+    assert np.allclose(np.linalg.det(iterative), 1.0)
