@@ -235,7 +235,9 @@ class Simulation:
 
     def stats(self):
         """The last step's numbers plus energies (J), volume ratios and inverted tets now."""
-        out = dict(self.last) if self.last else {"step": 0, "t": 0.0}
+        out = {"step": self.steps, "t": self.t, "solver": self.settings.method}
+        out.update(self.last)
+        out["corotational"] = [b.method == "corotational" for b in self.scene.bodies]   # now, after toggles
         out.update(self.measure.read(self.state.x, self.state.v))
         return out
 
