@@ -29,6 +29,9 @@ def add_velocity(v: ti.template(), free: ti.template(), ids: ti.types.ndarray(),
         v[i] += free[i] * ti.Vector([dv[k, 0], dv[k, 1], dv[k, 2]])
 
 
+CG_UNROLL = 4   # PCG iterations per kernel launch: fewer launches, same iteration count
+
+
 class Simulation:
     """Steps one scene with backward Euler; see fem.solver for the maths.
 
@@ -142,19 +145,16 @@ class Simulation:
         }
         return self.last
 
-    def solve_pcg(self, bb, cM, cK, corot):
+    def solve_pcg(self, scale, cM, cK, corot):
         """Jacobi-preconditioned CG from the warm start v; returns (iterations, |r|^2)."""
         s = self.solver
-        target = self.settings.tolerance ** 2 * (bb if bb > 0 else 1.0)
+        target = self.settings.tolerance ** 2 * (scale if scale > 0 else 1.0)
         s.stiffness_product(s.solution, s.solution, corot)
         rr = s.start_residual(cM, cK)
-        iterations = 0
-        while rr > target and iterations < self.settings.max_iterations:
-            s.stiffness_product(s.z, s.p, corot)
-            s.direction_product(cM, cK)
-            rr = s.cg_update()
-            iterations += 1
-        return iterations, rr
+        if rr > target:
+            while s.active[None]:
+                rr = s.cg_iterations(cM, cK, target, self.settings.max_iterations, corot, CG_UNROLL)
+        return s.iterations[None], rr
 
     def solve_jacobi(self, bb, cM, cK, corot):
         """Weighted block-Jacobi iteration; returns (iterations, |r|^2 of the last checked iterate)."""

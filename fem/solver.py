@@ -45,9 +45,10 @@ class ImplicitSolver:
         self.contact = ti.field(ti.i32, n if self.has_ground else 1)   # 1: on the ground this step
         self.pressed = ti.field(ti.i32, n if self.has_ground else 1)   # 1: the ground pushed it last step
         self.rz = ti.field(float, ())                     # PCG scalars stay on the device
-        self.rz_new = ti.field(float, ())
-        self.pAp = ti.field(float, ())
+        self.rr = ti.field(float, ())
         self.beta = ti.field(float, ())
+        self.iterations = ti.field(ti.i32, ())
+        self.active = ti.field(ti.i32, ())                # 1 while PCG iterates
         self.reset_rotations()
 
     # ------------------------------------------------------------ per-tet kernels
@@ -97,20 +98,23 @@ class ImplicitSolver:
 
     @ti.kernel
     def stiffness_product(self, u: ti.template(), w: ti.template(), corot: ti.template()):
-        """corner <- (K(R) d)_e per tet for the direction d = u + beta w (N/m times m/s).
+        """corner <- (K(R) d)_e per tet for the direction d = u + beta w (N/m times m/s)."""
+        for e in range(self.model.n_tets):
+            self.tet_stiffness(e, u, w, corot)
 
-        Taking d = z + beta p here fuses the CG direction update into this pass.
-        """
+    @ti.func
+    def tet_stiffness(self, e, u: ti.template(), w: ti.template(), corot: ti.template()):
+        """One tet's share of K(R) d, d = u + beta w: taking d = z + beta p here fuses
+        the CG direction update into this pass."""
         beta = self.beta[None]
-        for e in self.rotations:
-            t = self.model.tets[e]
-            d0, d1 = u[t[0]] + beta * w[t[0]], u[t[1]] + beta * w[t[1]]
-            d2, d3 = u[t[2]] + beta * w[t[2]], u[t[3]] + beta * w[t[3]]
-            dF = edge_matrix(d0, d1, d2, d3) @ self.model.Bm[e]
-            R = ti.Matrix.identity(float, 3)
-            if ti.static(corot):
-                R = self.rotations[e]
-            self.store_corners(e, -stress_map(dF, R, self.model.mu[e], self.model.lam[e]))
+        t = self.model.tets[e]
+        d0, d1 = u[t[0]] + beta * w[t[0]], u[t[1]] + beta * w[t[1]]
+        d2, d3 = u[t[2]] + beta * w[t[2]], u[t[3]] + beta * w[t[3]]
+        dF = edge_matrix(d0, d1, d2, d3) @ self.model.Bm[e]
+        R = ti.Matrix.identity(float, 3)
+        if ti.static(corot):
+            R = self.rotations[e]
+        self.store_corners(e, -stress_map(dF, R, self.model.mu[e], self.model.lam[e]))
 
     @ti.func
     def store_corners(self, e, P):
@@ -199,39 +203,55 @@ class ImplicitSolver:
             rz += r.dot(z)
             rr += r.dot(r)
         self.rz[None] = rz
+        self.rr[None] = rr
+        self.iterations[None] = 0
+        self.active[None] = 1
         return rr
 
     @ti.kernel
-    def direction_product(self, cM: float, cK: float):
-        """p <- z + beta p and Ap <- cM M p + cK K p (K p gathered from the corners); pAp <- p.Ap."""
-        pAp = 0.0
-        beta = self.beta[None]
-        for i in self.p:
-            p = self.z[i] + beta * self.p[i]
-            Ap = self.filtered(i, cM * self.model.mass[i] * p + cK * self.gather(i))
-            self.p[i], self.Ap[i] = p, Ap
-            pAp += p.dot(Ap)
-        self.pAp[None] = pAp
+    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32,
+                      corot: ti.template(), unroll: ti.template()) -> float:
+        """Up to `unroll` PCG iterations in one launch; returns |r|^2 after the last one done.
 
-    @ti.kernel
-    def cg_update(self) -> float:
-        """solution += alpha p, r -= alpha Ap, z <- P r; sets beta for the next direction. Returns |r|^2."""
-        alpha = 0.0
-        if self.pAp[None] > 0:
-            alpha = self.rz[None] / self.pAp[None]
-        rz, rr = 0.0, 0.0
-        for i in self.r:
-            self.solution[i] += alpha * self.p[i]
-            r = self.r[i] - alpha * self.Ap[i]
-            z = self.filtered(i, self.block_inverse[i] @ r)
-            self.r[i], self.z[i] = r, z
-            rz += r.dot(z)
-            rr += r.dot(r)
-        self.beta[None] = 0.0
-        if self.rz[None] > 0:
-            self.beta[None] = rz / self.rz[None]
-        self.rz[None] = rz
-        return rr
+        Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
+        vertices: x, r, z and r.z, r.r) with the scalar steps between them run
+        serially on the device. Once |r|^2 <= target or `cap` iterations are done,
+        `active` drops to 0 and the remaining passes loop over nothing, so the
+        iteration count is exact while Python launches one kernel per `unroll`.
+        """
+        n_tets, n = self.model.n_tets, self.model.n_vertices
+        for _ in ti.static(range(unroll)):
+            on = self.active[None]
+            for e in range(n_tets * on):
+                self.tet_stiffness(e, self.z, self.p, corot)
+            pAp = 0.0
+            beta = self.beta[None]
+            for i in range(n * on):
+                p = self.z[i] + beta * self.p[i]
+                Ap = self.filtered(i, cM * self.model.mass[i] * p + cK * self.gather(i))
+                self.p[i], self.Ap[i] = p, Ap
+                pAp += p.dot(Ap)
+            alpha = 0.0
+            if pAp > 0:
+                alpha = self.rz[None] / pAp
+            rz, rr = 0.0, 0.0
+            for i in range(n * on):
+                self.solution[i] += alpha * self.p[i]
+                r = self.r[i] - alpha * self.Ap[i]
+                z = self.filtered(i, self.block_inverse[i] @ r)
+                self.r[i], self.z[i] = r, z
+                rz += r.dot(z)
+                rr += r.dot(r)
+            if on:
+                self.beta[None] = 0.0
+                if self.rz[None] > 0:
+                    self.beta[None] = rz / self.rz[None]
+                self.rz[None] = rz
+                self.rr[None] = rr
+                self.iterations[None] += 1
+                if not (rr > target and self.iterations[None] < cap):
+                    self.active[None] = 0
+        return self.rr[None]
 
     @ti.kernel
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
