@@ -137,6 +137,7 @@ def configure(sim, variant):
     sim.settings = settings
     sim.set_method(variant.method)
     sim.reset()
+    sim.solver.pressed.fill(0)   # reset() keeps the ground's contact memory; every run must start alike
 
 
 def warm_up(sim, precision, steps=2):
@@ -200,7 +201,7 @@ def summarise(variant, run, reference, sim, checkpoint_steps, plan):
         x = run["snapshots"].get(k)
         errors[f"{t:g}"] = None if x is None else rms(x - reference[k]) / diagonal
     row = {
-        "label": variant.label, "method": variant.method, "solver": variant.solver,
+        "label": variant.label, "short": variant.short, "method": variant.method, "solver": variant.solver,
         "tolerance": variant.tolerance or None, "iterations": variant.iterations or None,
         "steps": len(run["infos"]), "timed_steps": len(timed), "stopped_early": run["stopped_early"],
         "first_step_ms": run["infos"][0]["wall_ms"],
@@ -229,7 +230,7 @@ def measure_scene(ref, plan, precision, progress):
     sim = fem.Simulation(make_scene(ref))
     dt = sim.settings.dt
     checkpoint_steps = {max(1, round(t / dt)): t for t in plan.checkpoints}
-    n_steps = max(checkpoint_steps)
+    n_steps = max(*checkpoint_steps, plan.warmup_steps + MIN_TIMED_STEPS)
     progress.set_description(f"{ref}: compiling")
     warm_up(sim, precision)
     rows, reference = [], None
@@ -426,8 +427,7 @@ def plot(results, file):
                 continue
             y = max(error, floor)
             by_solver.setdefault((r["method"], r["solver"]), []).append((r["ms_median"], y))
-            ax.annotate(Variant(r["method"], r["solver"], r["tolerance"] or 0, r["iterations"] or 0).short,
-                        (r["ms_median"], y), fontsize=7, textcoords="offset points",
+            ax.annotate(r["short"], (r["ms_median"], y), fontsize=7, textcoords="offset points",
                         xytext=(4, 3) if r["method"] == "corotational" else (4, -9))
         for (method, solver), points in sorted(by_solver.items()):
             xs, ys = zip(*points)
