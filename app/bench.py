@@ -419,8 +419,8 @@ def plot(results, file):
         for r in s["variants"]:
             if r["solver"] == "reference":
                 ax.axvline(r["ms_median"], color="grey", ls="--", lw=1)
-                ax.annotate("reference", (r["ms_median"], floor), rotation=90, fontsize=7, color="grey",
-                            xytext=(2, 2), textcoords="offset points")
+                ax.annotate("reference", (r["ms_median"], 0.02), xycoords=("data", "axes fraction"),
+                            rotation=90, fontsize=7, color="grey", xytext=(2, 0), textcoords="offset points")
                 continue
             error = final_error(r)
             if error is None:
