@@ -137,7 +137,6 @@ def configure(sim, variant):
     sim.settings = settings
     sim.set_method(variant.method)
     sim.reset()
-    sim.solver.pressed.fill(0)   # reset() keeps the ground's contact memory; every run must start alike
 
 
 def warm_up(sim, precision, steps=2):

@@ -68,6 +68,7 @@ class Simulation:
         """Back to t = 0 with the scene's initial conditions."""
         self.state.load(*self.model.initial_state())
         self.solver.reset_rotations()
+        self.solver.pressed.fill(0)          # no vertex starts out pushed by the ground
         self.t = 0.0
         self.steps = 0
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
