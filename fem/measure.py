@@ -8,6 +8,7 @@ import numpy as np
 import taichi as ti
 
 from fem.elastic import edge_matrix, polar_rotation, strain_energy_density
+from fem.runtime import serial_loops
 
 
 @ti.data_oriented
@@ -23,6 +24,8 @@ class Measure:
         self.vertex_body = ti.field(ti.i32, model.n_vertices)
         self.tet_volume_ratio = ti.field(float, model.n_tets)
         self.tet_energy_density = ti.field(float, model.n_tets)   # J/m^3
+        self.serial_tets = serial_loops(model.n_tets, "tets")
+        self.serial_vertices = serial_loops(model.n_vertices, "vertices")
         self.tet_body.from_numpy(model.tet_body)
         self.vertex_body.from_numpy(model.vertex_body)
 
@@ -30,6 +33,7 @@ class Measure:
     def measure(self, x: ti.template(), v: ti.template()):
         for b in self.volume:
             self.volume[b], self.elastic[b], self.kinetic[b], self.inverted[b] = 0.0, 0.0, 0.0, 0
+        ti.loop_config(serialize=self.serial_tets)
         for e in self.tet_body:
             t = self.model.tets[e]
             F = edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]]) @ self.model.Bm[e]
@@ -45,6 +49,7 @@ class Measure:
                 self.inverted[b] += 1
             self.tet_volume_ratio[e] = J
             self.tet_energy_density[e] = psi
+        ti.loop_config(serialize=self.serial_vertices)
         for i in self.vertex_body:
             self.kinetic[self.vertex_body[i]] += 0.5 * self.model.mass[i] * v[i].norm_sqr()
 

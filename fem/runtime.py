@@ -40,3 +40,13 @@ def init(arch="cpu", precision="f32", debug=False):
 def current():
     """{"arch": backend name, "precision": "f32"|"f64"} of the running Taichi, {} before init."""
     return dict(_current)
+
+
+# On the CPU every parallel loop pays ~50-100 us to wake Taichi's thread pool (measured on
+# 2-core machines), more than a small loop takes on one thread; below these sizes loops run serially.
+PARALLEL_MIN = {"tets": 8000, "vertices": 30000}
+
+
+def serial_loops(count, kind):
+    """True when a CPU loop over `count` tets or vertices (kind) is faster on one thread."""
+    return _current.get("arch") in ("x64", "arm64") and count < PARALLEL_MIN[kind]

@@ -29,7 +29,7 @@ def add_velocity(v: ti.template(), free: ti.template(), ids: ti.types.ndarray(),
         v[i] += free[i] * ti.Vector([dv[k, 0], dv[k, 1], dv[k, 2]])
 
 
-CG_UNROLL = 4   # PCG iterations per kernel launch: fewer launches, same iteration count
+CG_UNROLL = 2   # PCG iterations per kernel launch: fewer launches, same iteration count
 
 
 class Simulation:

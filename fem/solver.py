@@ -19,6 +19,7 @@ import taichi as ti
 
 from fem.elastic import (corner_forces, edge_matrix, is_finite, polar_rotation, quaternion_matrix,
                          refine_rotation, stiffness_block, stress_map)
+from fem.runtime import serial_loops
 
 
 @ti.data_oriented
@@ -34,6 +35,8 @@ class ImplicitSolver:
         self.ground = effects.ground or 0.0               # plane height y, m
         self.friction = effects.friction
         self.pins = model.has_pins                        # compile-time: filter pinned rows
+        self.serial_tets = serial_loops(m, "tets")        # compile-time: small loops on one thread
+        self.serial_vertices = serial_loops(n, "vertices")
         vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
         self.rotations = ti.Matrix.field(3, 3, float, m)  # R per tet (identity for linear tets)
         self.quaternions = ti.Vector.field(4, float, m)   # the same R as (x, y, z, w): next step's warm start
@@ -55,6 +58,7 @@ class ImplicitSolver:
 
     @ti.kernel
     def reset_rotations(self):
+        ti.loop_config(serialize=self.serial_tets)
         for e in self.rotations:
             self.rotations[e] = ti.Matrix.identity(float, 3)
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
@@ -72,6 +76,7 @@ class ImplicitSolver:
         the SVD only for inverted or flat tets, where its reflection-safe answer
         matters; svd=True: the SVD for every tet (the reference).
         """
+        ti.loop_config(serialize=self.serial_tets)
         for e in self.rotations:
             if self.model.corotational[e]:
                 F = self.deformation_gradient(x, e)
@@ -88,6 +93,7 @@ class ImplicitSolver:
     @ti.kernel
     def elastic_forces(self, x: ti.template(), corot: ti.template()):
         """corner <- f_e = -R Ke (R^T x_e - X_e) per tet (linear: R = I)."""
+        ti.loop_config(serialize=self.serial_tets)
         for e in self.rotations:
             R = ti.Matrix.identity(float, 3)
             if ti.static(corot):
@@ -99,6 +105,7 @@ class ImplicitSolver:
     @ti.kernel
     def stiffness_product(self, u: ti.template(), w: ti.template(), corot: ti.template()):
         """corner <- (K(R) d)_e per tet for the direction d = u + beta w (N/m times m/s)."""
+        ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.n_tets):
             self.tet_stiffness(e, u, w, corot)
 
@@ -148,6 +155,7 @@ class ImplicitSolver:
     @ti.kernel
     def build_preconditioner(self, cM: float, cK: float, corot: ti.template()):
         """block_inverse <- inverse of the 3x3 diagonal blocks of A = cM M + cK K(R)."""
+        ti.loop_config(serialize=self.serial_vertices)
         for i in self.block_inverse:
             # a pinned vertex keeps an identity block, so the inverse exists even where mass is 0
             block = (cM * self.model.mass[i] + 1.0 - self.model.free[i]) * ti.Matrix.identity(float, 3)
@@ -174,6 +182,7 @@ class ImplicitSolver:
         solve for ever more digits of nothing.
         """
         scale = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
         for i in self.b:
             m = self.model.mass[i]
             f = self.gather(i)
@@ -195,6 +204,7 @@ class ImplicitSolver:
     def start_residual(self, cM: float, cK: float) -> float:
         """r <- b - A solution, z <- P r, rz <- r.z. Returns |r|^2."""
         rz, rr = 0.0, 0.0
+        ti.loop_config(serialize=self.serial_vertices)
         for i in self.r:
             Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
             r = self.filtered(i, self.b[i] - Ax)
@@ -222,10 +232,12 @@ class ImplicitSolver:
         n_tets, n = self.model.n_tets, self.model.n_vertices
         for _ in ti.static(range(unroll)):
             on = self.active[None]
+            ti.loop_config(serialize=self.serial_tets)
             for e in range(n_tets * on):
                 self.tet_stiffness(e, self.z, self.p, corot)
             pAp = 0.0
             beta = self.beta[None]
+            ti.loop_config(serialize=self.serial_vertices)
             for i in range(n * on):
                 p = self.z[i] + beta * self.p[i]
                 Ap = self.filtered(i, cM * self.model.mass[i] * p + cK * self.gather(i))
@@ -235,6 +247,7 @@ class ImplicitSolver:
             if pAp > 0:
                 alpha = self.rz[None] / pAp
             rz, rr = 0.0, 0.0
+            ti.loop_config(serialize=self.serial_vertices)
             for i in range(n * on):
                 self.solution[i] += alpha * self.p[i]
                 r = self.r[i] - alpha * self.Ap[i]
@@ -257,6 +270,7 @@ class ImplicitSolver:
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
         """solution += omega P (b - A solution). Returns |b - A solution|^2 before the update."""
         rr = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
         for i in self.r:
             Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
             r = self.filtered(i, self.b[i] - Ax)
@@ -268,6 +282,7 @@ class ImplicitSolver:
     def commit(self, x: ti.template(), v: ti.template(), dt: float) -> ti.i32:
         """v <- solution, x <- x + dt v; keeps a backup. Returns the count of non-finite vertices."""
         bad = 0
+        ti.loop_config(serialize=self.serial_vertices)
         for i in x:
             self.x_backup[i], self.v_backup[i] = x[i], v[i]
             v[i] = self.solution[i]
@@ -278,6 +293,7 @@ class ImplicitSolver:
 
     @ti.kernel
     def restore(self, x: ti.template(), v: ti.template()):
+        ti.loop_config(serialize=self.serial_vertices)
         for i in x:
             x[i], v[i] = self.x_backup[i], self.v_backup[i]
 
@@ -286,6 +302,7 @@ class ImplicitSolver:
         """Active set of the ground constraint: a free vertex is in contact when its velocity
         would take it below the plane this step, or when the plane still pushed it last step.
         The solve then fixes its normal velocity so that it lands on the plane."""
+        ti.loop_config(serialize=self.serial_vertices)
         for i in x:
             self.contact[i] = 0
             if self.model.free[i] > 0 and (x[i][1] + dt * v[i][1] < self.ground or self.pressed[i]):
@@ -295,6 +312,7 @@ class ImplicitSolver:
     def ground_reaction(self, cM: float, cK: float):
         """pressed <- contact vertices the plane pushes up: (A v - b)_y > 0 (after
         stiffness_product(solution)); the others may lift off next step."""
+        ti.loop_config(serialize=self.serial_vertices)
         for i in self.pressed:
             self.pressed[i] = 0
             if self.contact[i]:
@@ -306,6 +324,7 @@ class ImplicitSolver:
     def ground_contact(self, x: ti.template(), v: ti.template()):
         """Friction on the vertices in contact (removes part of the tangential velocity),
         and no vertex left below the plane."""
+        ti.loop_config(serialize=self.serial_vertices)
         for i in x:
             if x[i][1] < self.ground:
                 self.pressed[i] = 1      # caught below the plane: in contact next step
@@ -318,5 +337,6 @@ class ImplicitSolver:
     @ti.kernel
     def matrix_product(self, u: ti.template(), out: ti.template(), cM: float, cK: float):
         """out <- A u, gathered from `corner` after stiffness_product(u): for tests and checks."""
+        ti.loop_config(serialize=self.serial_vertices)
         for i in out:
             out[i] = self.filtered(i, cM * self.model.mass[i] * u[i] + cK * self.gather(i))
