@@ -5,6 +5,7 @@ Symbols (Sifakis & Barbic 2012):
     Bm  inverse of the same matrix at rest (3x3), so F = Ds Bm
     W   rest volume (m^3);  mu, lam  Lame parameters (Pa)
     R   polar rotation of F (identity for linear tets)
+The solver uses these through Bm R^T (see fem/solver.py), the stats through R.
 """
 
 import taichi as ti
@@ -20,19 +21,6 @@ def edge_matrix(a, b, c, d):
 def linear_stress(eps, mu, lam):
     """Small-strain stress sigma = 2 mu eps + lam tr(eps) I (Pa)."""
     return 2.0 * mu * eps + lam * eps.trace() * ti.Matrix.identity(float, 3)
-
-
-@ti.func
-def stress_map(G, R, mu, lam):
-    """R sigma(sym(R^T G)): the stress of a displacement gradient G seen in the rotated frame.
-
-    With G = F - R this is the corotational stress at F; with G = dF it is the
-    stiffness applied to a direction, K(R) p. One function for both, so the
-    force and the implicit system can never disagree.
-    """
-    Gr = R.transpose() @ G
-    eps = 0.5 * (Gr + Gr.transpose())
-    return R @ linear_stress(eps, mu, lam)
 
 
 @ti.func
@@ -138,11 +126,10 @@ def strain_energy_density(F, R, mu, lam):
 
 
 @ti.func
-def stiffness_block(g, R, W, mu, lam):
-    """Diagonal 3x3 block of R Ke R^T for a corner with shape gradient g.
+def stiffness_block(h, W, mu, lam):
+    """Diagonal 3x3 block of R Ke R^T for a corner whose rotated shape gradient is h = R g.
 
     Ke's block is W (lam g g^T + mu (g.g I + g g^T)); rotating it only turns g into R g.
     """
-    h = R @ g
     hh = h.outer_product(h)
-    return W * (lam * hh + mu * (g.dot(g) * ti.Matrix.identity(float, 3) + hh))
+    return W * (lam * hh + mu * (h.dot(h) * ti.Matrix.identity(float, 3) + hh))

@@ -68,6 +68,7 @@ class Simulation:
         """Back to t = 0 with the scene's initial conditions."""
         self.state.load(*self.model.initial_state())
         self.solver.reset_rotations()
+        self.rotated = False                 # rotated_Bm holds Bm
         self.solver.pressed.fill(0)          # no vertex starts out pushed by the ground
         self.t = 0.0
         self.steps = 0
@@ -95,25 +96,29 @@ class Simulation:
 
         if corot:
             s.extract_rotations(x, self.settings.rotations == "svd")
+            self.rotated = True
             ti.sync()
+        elif self.rotated:                      # every body switched to linear: unrotate
+            s.reset_rotations()
+            self.rotated = False
         rotation_ms = 1e3 * (time.perf_counter() - start)
         if self.settings.method == "jacobi":
             self.jacobi_weight(cM, cK)
         key = (cM, cK, corot, self.model.material_version)
         if corot or key != self.preconditioner_key:
-            s.build_preconditioner(cM, cK, corot)   # linear: once, as A never changes
+            s.build_preconditioner(cM, cK)   # linear: once, as A never changes
             self.preconditioner_key = key
         if self.scene.effects.ground is not None:
             s.detect_contacts(x, v, dt)
-        s.elastic_forces(x, corot)
+        s.elastic_forces(x)
         bb = s.assemble_rhs(x, v, dt)
         if self.settings.method == "pcg":
-            iterations, rr = self.solve_pcg(bb, cM, cK, corot)
+            iterations, rr = self.solve_pcg(bb, cM, cK)
         else:
-            iterations, rr = self.solve_jacobi(bb, cM, cK, corot)
+            iterations, rr = self.solve_jacobi(bb, cM, cK)
         if self.scene.effects.ground is not None:
             s.beta[None] = 0.0
-            s.stiffness_product(s.solution, s.solution, corot)
+            s.stiffness_product(s.solution, s.solution)
             s.ground_reaction(cM, cK)
         bad = s.commit(x, v, dt)
         finite = bad == 0
@@ -146,25 +151,25 @@ class Simulation:
         }
         return self.last
 
-    def solve_pcg(self, scale, cM, cK, corot):
+    def solve_pcg(self, scale, cM, cK):
         """Jacobi-preconditioned CG from the warm start v; returns (iterations, |r|^2)."""
         s = self.solver
         target = self.settings.tolerance ** 2 * (scale if scale > 0 else 1.0)
-        s.stiffness_product(s.solution, s.solution, corot)
+        s.stiffness_product(s.solution, s.solution)
         rr = s.start_residual(cM, cK)
         if rr > target:
             while s.active[None]:
-                rr = s.cg_iterations(cM, cK, target, self.settings.max_iterations, corot, CG_UNROLL)
+                rr = s.cg_iterations(cM, cK, target, self.settings.max_iterations, CG_UNROLL)
         return s.iterations[None], rr
 
-    def solve_jacobi(self, bb, cM, cK, corot):
+    def solve_jacobi(self, bb, cM, cK):
         """Weighted block-Jacobi iteration; returns (iterations, |r|^2 of the last checked iterate)."""
         s = self.solver
         target = self.settings.tolerance ** 2 * (bb if bb > 0 else 1.0)
         omega = self.settings.jacobi_omega or self.omega
         iterations, rr = 0, math.inf
         while iterations < self.settings.max_iterations:
-            s.stiffness_product(s.solution, s.solution, corot)
+            s.stiffness_product(s.solution, s.solution)
             rr = s.jacobi_update(cM, cK, omega)
             iterations += 1
             if rr <= target:
@@ -177,30 +182,28 @@ class Simulation:
         key = (cM, cK, self.model.material_version)
         if key != self.omega_key:
             s = self.solver
-            s.build_preconditioner(cM, cK, False)
+            s.build_preconditioner(cM, cK)
             self.preconditioner_key = None
             P = s.block_inverse.to_numpy()
             u = np.random.default_rng(0).standard_normal((self.model.n_vertices, 3))
             lam = 1.0
             for _ in range(30):
                 u /= np.linalg.norm(u)
-                Au = self.apply_matrix(u, cM, cK, corot=False)
+                Au = self.apply_matrix(u, cM, cK)
                 w = np.einsum("nij,nj->ni", P, Au)
                 lam = float(np.vdot(u, w)) if np.vdot(u, u) > 0 else 1.0
                 u = w
             self.omega, self.omega_key = 1.5 / max(lam, 1e-12), key
         return self.omega
 
-    def apply_matrix(self, u, cM=None, cK=None, corot=None):
+    def apply_matrix(self, u, cM=None, cK=None):
         """A u for a (n, 3) numpy array u, through the same kernels as the solver (for checks)."""
         s = self.solver
         if cM is None:
             cM, cK = self.coefficients
-        if corot is None:
-            corot = self.model.any_corotational
         s.p.from_numpy(u)
         s.beta[None] = 0.0
-        s.stiffness_product(s.p, s.p, corot)
+        s.stiffness_product(s.p, s.p)
         s.matrix_product(s.p, s.Ap, cM, cK)
         return s.Ap.to_numpy().astype(np.float64)
 

@@ -11,14 +11,15 @@ result is the same bit for bit on every run). PCG (Jacobi-preconditioned CG) is
 the default; weighted Jacobi iteration is the cheap alternative.
 
 Effects a scene leaves off are not compiled: gravity, pins and ground contact are
-`ti.static` branches fixed when the solver is made, corotation is a template
-argument, and rotations are only extracted when some body is corotational.
+`ti.static` branches fixed when the solver is made, and rotations are only
+extracted when some body is corotational. Linear and corotational tets share every
+kernel: corotation only changes the per-tet matrix `rotated_Bm` once per step.
 """
 
 import taichi as ti
 
-from fem.elastic import (corner_forces, edge_matrix, is_finite, polar_rotation, quaternion_matrix,
-                         refine_rotation, stiffness_block, stress_map)
+from fem.elastic import (corner_forces, edge_matrix, is_finite, linear_stress, polar_rotation,
+                         quaternion_matrix, refine_rotation, stiffness_block)
 from fem.runtime import serial_loops
 
 
@@ -39,6 +40,7 @@ class ImplicitSolver:
         self.serial_vertices = serial_loops(n, "vertices")
         vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
         self.rotations = ti.Matrix.field(3, 3, float, m)  # R per tet (identity for linear tets)
+        self.rotated_Bm = ti.Matrix.field(3, 3, float, m) # Bm R^T: the only form the solve needs
         self.quaternions = ti.Vector.field(4, float, m)   # the same R as (x, y, z, w): next step's warm start
         self.corner = vec(4 * m)                          # per-corner values before the gather
         self.b, self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n), vec(n)
@@ -58,19 +60,22 @@ class ImplicitSolver:
 
     @ti.kernel
     def reset_rotations(self):
+        """Every tet unrotated: R = I and rotated_Bm = Bm (what linear tets always use)."""
         ti.loop_config(serialize=self.serial_tets)
         for e in self.rotations:
             self.rotations[e] = ti.Matrix.identity(float, 3)
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
+            self.rotated_Bm[e] = self.model.Bm[e]
 
     @ti.func
-    def deformation_gradient(self, x: ti.template(), e):
+    def edges(self, x: ti.template(), e):
+        """Ds of tet e for the vertex values x (positions or velocities)."""
         t = self.model.tets[e]
-        return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]]) @ self.model.Bm[e]
+        return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]])
 
     @ti.kernel
     def extract_rotations(self, x: ti.template(), svd: ti.template()):
-        """R = polar rotation of F for every corotational tet.
+        """R = polar rotation of F for every corotational tet, and rotated_Bm = Bm R^T.
 
         svd=False: warm-started iterative extraction for tets with det F > 0, and
         the SVD only for inverted or flat tets, where its reflection-safe answer
@@ -78,54 +83,57 @@ class ImplicitSolver:
         """
         ti.loop_config(serialize=self.serial_tets)
         for e in self.rotations:
+            R = ti.Matrix.identity(float, 3)
             if self.model.corotational[e]:
-                F = self.deformation_gradient(x, e)
+                F = self.edges(x, e) @ self.model.Bm[e]
                 if ti.static(not svd):
                     if F.determinant() > 0:
                         q = refine_rotation(F, self.quaternions[e], 8)
                         self.quaternions[e] = q
-                        self.rotations[e] = quaternion_matrix(q)
+                        R = quaternion_matrix(q)
                     else:
-                        self.rotations[e] = polar_rotation(F)
+                        R = polar_rotation(F)
                 else:
-                    self.rotations[e] = polar_rotation(F)
+                    R = polar_rotation(F)
+            self.rotations[e] = R
+            self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
+
+    # Corotational FEM without a rotation in the inner loop: sigma is isotropic, so
+    #     R sigma(sym(R^T F) - I) Bm^T = sigma(sym(Ds Bm R^T) - I) (Bm R^T)^T,
+    # i.e. f = -R Ke (R^T x - X) is the linear formula with Bm replaced by Bm R^T
+    # (rotated_Bm, refreshed once per step). Linear tets keep rotated_Bm = Bm.
 
     @ti.kernel
-    def elastic_forces(self, x: ti.template(), corot: ti.template()):
+    def elastic_forces(self, x: ti.template()):
         """corner <- f_e = -R Ke (R^T x_e - X_e) per tet (linear: R = I)."""
         ti.loop_config(serialize=self.serial_tets)
         for e in self.rotations:
-            R = ti.Matrix.identity(float, 3)
-            if ti.static(corot):
-                R = self.rotations[e]
-            F = self.deformation_gradient(x, e)
-            P = stress_map(F - R, R, self.model.mu[e], self.model.lam[e])
-            self.store_corners(e, P)
+            F = self.edges(x, e) @ self.rotated_Bm[e]               # F R^T
+            eps = 0.5 * (F + F.transpose()) - ti.Matrix.identity(float, 3)
+            self.store_corners(e, linear_stress(eps, self.model.mu[e], self.model.lam[e]))
 
     @ti.kernel
-    def stiffness_product(self, u: ti.template(), w: ti.template(), corot: ti.template()):
+    def stiffness_product(self, u: ti.template(), w: ti.template()):
         """corner <- (K(R) d)_e per tet for the direction d = u + beta w (N/m times m/s)."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.n_tets):
-            self.tet_stiffness(e, u, w, corot)
+            self.tet_stiffness(e, u, w)
 
     @ti.func
-    def tet_stiffness(self, e, u: ti.template(), w: ti.template(), corot: ti.template()):
+    def tet_stiffness(self, e, u: ti.template(), w: ti.template()):
         """One tet's share of K(R) d, d = u + beta w: taking d = z + beta p here fuses
         the CG direction update into this pass."""
         beta = self.beta[None]
         t = self.model.tets[e]
         d0, d1 = u[t[0]] + beta * w[t[0]], u[t[1]] + beta * w[t[1]]
         d2, d3 = u[t[2]] + beta * w[t[2]], u[t[3]] + beta * w[t[3]]
-        dF = edge_matrix(d0, d1, d2, d3) @ self.model.Bm[e]
-        R = ti.Matrix.identity(float, 3)
-        if ti.static(corot):
-            R = self.rotations[e]
-        self.store_corners(e, -stress_map(dF, R, self.model.mu[e], self.model.lam[e]))
+        dF = edge_matrix(d0, d1, d2, d3) @ self.rotated_Bm[e]
+        eps = 0.5 * (dF + dF.transpose())
+        self.store_corners(e, -linear_stress(eps, self.model.mu[e], self.model.lam[e]))
 
     @ti.func
     def store_corners(self, e, P):
-        f0, f1, f2, f3 = corner_forces(P, self.model.Bm[e], self.model.rest_volume[e])
+        f0, f1, f2, f3 = corner_forces(P, self.rotated_Bm[e], self.model.rest_volume[e])
         self.corner[4 * e + 0] = f0
         self.corner[4 * e + 1] = f1
         self.corner[4 * e + 2] = f2
@@ -153,7 +161,7 @@ class ImplicitSolver:
         return a
 
     @ti.kernel
-    def build_preconditioner(self, cM: float, cK: float, corot: ti.template()):
+    def build_preconditioner(self, cM: float, cK: float):
         """block_inverse <- inverse of the 3x3 diagonal blocks of A = cM M + cK K(R)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.block_inverse:
@@ -162,14 +170,11 @@ class ImplicitSolver:
             for j in range(self.model.adjacency_start[i], self.model.adjacency_start[i + 1]):
                 slot = self.model.adjacency[j]
                 e, k = slot // 4, slot % 4
-                Bm = self.model.Bm[e]
-                g = -(Bm[0, :] + Bm[1, :] + Bm[2, :])
+                B = self.rotated_Bm[e]
+                h = -(B[0, :] + B[1, :] + B[2, :])       # rotated shape gradient of corner k
                 if k < 3:
-                    g = Bm[k, :]
-                R = ti.Matrix.identity(float, 3)
-                if ti.static(corot):
-                    R = self.rotations[e]
-                block += cK * stiffness_block(g, R, self.model.rest_volume[e], self.model.mu[e], self.model.lam[e])
+                    h = B[k, :]
+                block += cK * stiffness_block(h, self.model.rest_volume[e], self.model.mu[e], self.model.lam[e])
             self.block_inverse[i] = block.inverse()
 
     @ti.kernel
@@ -219,8 +224,7 @@ class ImplicitSolver:
         return rr
 
     @ti.kernel
-    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32,
-                      corot: ti.template(), unroll: ti.template()) -> float:
+    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template()) -> float:
         """Up to `unroll` PCG iterations in one launch; returns |r|^2 after the last one done.
 
         Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
@@ -234,7 +238,7 @@ class ImplicitSolver:
             on = self.active[None]
             ti.loop_config(serialize=self.serial_tets)
             for e in range(n_tets * on):
-                self.tet_stiffness(e, self.z, self.p, corot)
+                self.tet_stiffness(e, self.z, self.p)
             pAp = 0.0
             beta = self.beta[None]
             ti.loop_config(serialize=self.serial_vertices)
