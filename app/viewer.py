@@ -10,6 +10,7 @@ draw the bodies, the floor and the panel -> write a stats line.
 """
 
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +55,7 @@ class Press:
 
 
 def run(args) -> int:
+    check_display()
     fem.init(args.arch, args.precision, debug=args.debug)
     width, height = parse_size(args.size)
     if args.stats:
@@ -65,6 +67,18 @@ def run(args) -> int:
     else:
         viewer.loop(None)
     return 0
+
+
+def check_display():
+    """FemError unless a display is there: GLFW ends the process when it cannot open one."""
+    display = os.environ.get("DISPLAY", "")
+    hint = "run it under a desktop or xvfb-run, or use `main.py export` for frames and videos without one"
+    if not display and not os.environ.get("WAYLAND_DISPLAY"):
+        raise fem.FemError(f"view: no display ($DISPLAY is not set); {hint}")
+    if display.startswith(":"):           # a local X server listens on a socket we can see
+        number = display[1:].split(".")[0]
+        if not Path(f"/tmp/.X11-unix/X{number}").exists():
+            raise fem.FemError(f"view: no X server on display {display}; {hint}")
 
 
 def parse_size(text):
@@ -91,7 +105,10 @@ class Viewer:
         self.args, self.width, self.height = args, width, height
         names = list(fem.builtin_scenes())
         self.scene_refs = names if args.scene in names else [args.scene] + names
-        self.window = ti.ui.Window("softfem", (width, height), vsync=False)
+        try:
+            self.window = ti.ui.Window("softfem", (width, height), vsync=False)
+        except RuntimeError as e:         # e.g. "Vulkan must be available"
+            raise fem.FemError(f"view: cannot open the window: {e}") from None
         self.canvas = self.window.get_canvas()
         self.scene3d = self.window.get_scene()
         self.ggui_camera = ti.ui.Camera()

@@ -226,3 +226,12 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, cggs, tmp_path):
     assert toggles and toggles[-1]["methods"] == ["linear", "linear"]
     stepped = [r["corotational"] for r in rows if "corotational" in r]
     assert stepped[0] == [True, True] and stepped[-1] == [False, False]
+
+
+def test_view_without_a_display_is_one_clear_error():
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    for extra in ({}, {"DISPLAY": ":987"}):
+        run = subprocess.run([sys.executable, "main.py", "view", "cube86"], cwd=ROOT, env={**env, **extra},
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 2
+        assert run.stderr.startswith("error: view: no") and len(run.stderr.splitlines()) == 1
