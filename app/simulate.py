@@ -6,6 +6,7 @@ import sys
 
 import fem
 from app.files import atomic_open, refuse_overwrite
+from fem.mesh import mesh_quality
 
 
 def build_simulation(args):
@@ -55,8 +56,10 @@ def summary(sim, rows):
              f"(tol {sim.settings.tolerance:g}), {fem.runtime.current().get('arch')} "
              f"{fem.runtime.current().get('precision')}"]
     for i, b in enumerate(m.bodies):
-        lines.append(f"  {b.name}: {b.tets.stop - b.tets.start} tets, "
-                     f"{sim.scene.bodies[i].method}, volume ratio {final['volume_ratio'][i]:.4f}")
+        quality = mesh_quality(sim.scene.bodies[i].mesh)
+        lines.append(f"  {b.name}: {quality['tets']} tets, {quality['vertices']} vertices, "
+                     f"min dihedral {quality['min_dihedral_deg']:.1f} deg, volume {quality['volume']:.4g} m^3; "
+                     f"{sim.scene.bodies[i].method}, volume ratio now {final['volume_ratio'][i]:.4f}")
     not_converged = sum(not r["converged"] for r in rows)
     rejected = sum(not r["finite"] for r in rows)
     lines.append(f"{len(rows)} steps to t = {sim.t:.3f} s: {statistics.median(ms):.2f} ms/step (median), "
