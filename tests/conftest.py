@@ -11,8 +11,8 @@ CGGS = ROOT.parent / "shared" / "cggs"
 sys.path.insert(0, str(ROOT))
 
 import fem  # noqa: E402
-from fem.mesh import prepare_mesh  # noqa: E402
 from fem.scene import Body, Effects, Material, Scene, SolverSettings  # noqa: E402
+from tools.cases import cube  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -29,19 +29,8 @@ def cggs():
 
 
 def box_mesh(n=2, size=1.0):
-    """A cube of n^3 cells, 6 tets each (Kuhn split): independent of assets/, for engine tests."""
-    g = np.linspace(-size / 2, size / 2, n + 1)
-    X = np.array(np.meshgrid(g, g, g, indexing="ij")).reshape(3, -1).T
-    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-    tets = []
-    for i in range(n):
-        for j in range(n):
-            for k in range(n):
-                c = [idx[i + a, j + b, k + d] for a in (0, 1) for b in (0, 1) for d in (0, 1)]
-                # corner numbering: bit 2 = x, bit 1 = y, bit 0 = z
-                tets += [[c[t] for t in tet] for tet in kuhn]
-    return prepare_mesh(X, np.array(tets), "test box")
+    """A cube of n^3 cells, 6 tets each (Kuhn split), independent of assets/: the hard cases' cube."""
+    return cube(cells=n, size=(size, size, size))
 
 
 def make_scene(mesh, method="corotational", E=1e4, nu=0.3, density=1000.0, effects=None,
