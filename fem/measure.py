@@ -7,18 +7,27 @@ files, the window's panel, colour modes), never inside the step itself.
 import numpy as np
 import taichi as ti
 
-from fem.elastic import edge_matrix, polar_rotation, strain_energy_density
+from fem.elastic import edge_matrix, energy_density
+from fem.rotation import polar_rotation
 from fem.runtime import serial_loops
 
 
 @ti.data_oriented
 class Measure:
-    def __init__(self, model):
+    """Per-body volume, energies and inverted tets of a state; energies summed in float64.
+
+    gravity: (gx, gy, gz) m/s^2 or None; the gravitational potential is -sum m g.x (J),
+    zero at the origin.
+    """
+
+    def __init__(self, model, gravity=None):
         self.model = model
         n_bodies = len(model.bodies)
-        self.volume = ti.field(float, n_bodies)        # m^3
-        self.elastic = ti.field(float, n_bodies)       # J
-        self.kinetic = ti.field(float, n_bodies)       # J
+        self.gravity = gravity or (0.0, 0.0, 0.0)
+        self.volume = ti.field(ti.f64, n_bodies)        # m^3
+        self.elastic = ti.field(ti.f64, n_bodies)       # J
+        self.kinetic = ti.field(ti.f64, n_bodies)       # J
+        self.potential = ti.field(ti.f64, n_bodies)     # J, gravitational
         self.inverted = ti.field(ti.i32, n_bodies)
         self.tet_body = ti.field(ti.i32, model.n_tets)
         self.vertex_body = ti.field(ti.i32, model.n_vertices)
@@ -32,7 +41,8 @@ class Measure:
     @ti.kernel
     def measure(self, x: ti.template(), v: ti.template()):
         for b in self.volume:
-            self.volume[b], self.elastic[b], self.kinetic[b], self.inverted[b] = 0.0, 0.0, 0.0, 0
+            self.volume[b], self.elastic[b], self.kinetic[b], self.potential[b] = 0.0, 0.0, 0.0, 0.0
+            self.inverted[b] = 0
         ti.loop_config(serialize=self.serial_tets)
         for e in self.tet_body:
             t = self.model.tets[e]
@@ -40,30 +50,42 @@ class Measure:
             R = ti.Matrix.identity(float, 3)
             if self.model.corotational[e]:
                 R = polar_rotation(F)
+            W = ti.cast(self.model.rest_volume[e], ti.f64)
             J = F.determinant()
-            psi = strain_energy_density(F, R, self.model.mu[e], self.model.lam[e])
+            psi = energy_density(ti.cast(R.transpose() @ F, ti.f64), ti.cast(self.model.mu[e], ti.f64),
+                                 ti.cast(self.model.lam[e], ti.f64), 1.0)
             b = self.tet_body[e]
-            self.volume[b] += J * self.model.rest_volume[e]
-            self.elastic[b] += psi * self.model.rest_volume[e]
+            self.volume[b] += ti.cast(J, ti.f64) * W
+            self.elastic[b] += psi * W
             if J <= 0:
                 self.inverted[b] += 1
             self.tet_volume_ratio[e] = J
-            self.tet_energy_density[e] = psi
+            self.tet_energy_density[e] = ti.cast(psi, float)
+        g = ti.Vector(self.gravity, dt=ti.f64)
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.vertex_body:
-            self.kinetic[self.vertex_body[i]] += 0.5 * self.model.mass[i] * v[i].norm_sqr()
+            m = ti.cast(self.model.mass[i], ti.f64)
+            b = self.vertex_body[i]
+            self.kinetic[b] += 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr()
+            self.potential[b] -= m * g.dot(ti.cast(x[i], ti.f64))
 
     def read(self, x, v):
-        """Per-body numbers as plain Python: volume ratio, kinetic and elastic energy (J), inverted tets."""
+        """Per-body numbers as plain Python: volume ratio, energies (J), inverted tets.
+
+        total_energy = kinetic + elastic + gravitational potential.
+        """
         self.measure(x, v)
         rest = np.array([b.rest_volume for b in self.model.bodies])
-        kinetic, elastic = self.kinetic.to_numpy(), self.elastic.to_numpy()
+        kinetic, elastic, potential = self.kinetic.to_numpy(), self.elastic.to_numpy(), self.potential.to_numpy()
         return {
             "kinetic_energy": float(kinetic.sum()),
             "elastic_energy": float(elastic.sum()),
+            "gravity_energy": float(potential.sum()),
+            "total_energy": float((kinetic + elastic + potential).sum()),
             "volume_ratio": (self.volume.to_numpy() / rest).tolist(),
             "inverted_tets": int(self.inverted.to_numpy().sum()),
             "body_kinetic_energy": kinetic.tolist(),
             "body_elastic_energy": elastic.tolist(),
+            "body_total_energy": (kinetic + elastic + potential).tolist(),
             "body_inverted_tets": self.inverted.to_numpy().tolist(),
         }

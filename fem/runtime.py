@@ -50,3 +50,8 @@ PARALLEL_MIN = {"tets": 8000, "vertices": 30000}
 def serial_loops(count, kind):
     """True when a CPU loop over `count` tets or vertices (kind) is faster on one thread."""
     return _current.get("arch") in ("x64", "arm64") and count < PARALLEL_MIN[kind]
+
+
+def epsilon():
+    """Machine epsilon of the float type the fields use (f32 before init)."""
+    return 2.0 ** -52 if _current.get("precision") == "f64" else 2.0 ** -23

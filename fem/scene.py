@@ -19,6 +19,7 @@ SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 METHODS = ("linear", "corotational")
 SOLVERS = ("pcg", "jacobi")
 ROTATIONS = ("iterative", "svd")
+STEPS = ("newton", "single")
 
 
 @dataclass
@@ -99,15 +100,21 @@ class Effects:
 @dataclass
 class SolverSettings:
     dt: float = 0.02                    # s
-    method: str = "pcg"                 # "pcg" | "jacobi"
-    tolerance: float = 1e-4             # relative residual |r| / |b|
-    max_iterations: int = 200
+    step: str = "newton"                # "newton": minimise the incremental potential | "single": one solve
+    max_newton: int = 20                # Newton iterations per step at most
+    method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration
+    tolerance: float = 1e-4             # per body: |grad E| / (size of the step's own terms)
+    max_iterations: int = 200           # linear solver iterations per Newton iteration
     jacobi_omega: float | None = None   # None: chosen from a spectral estimate
     rotations: str = "iterative"        # "iterative" (warm-started, SVD when inverted) | "svd"
 
     def check(self, where):
         if not self.dt > 0:
             raise FemError(f"{where}: dt must be > 0, got {self.dt}")
+        if self.step not in STEPS:
+            raise FemError(f"{where}: step must be one of {STEPS}, got {self.step!r}")
+        if not self.max_newton >= 1:
+            raise FemError(f"{where}: max_newton must be >= 1, got {self.max_newton}")
         if self.method not in SOLVERS:
             raise FemError(f"{where}: solver must be one of {SOLVERS}, got {self.method!r}")
         if not self.tolerance > 0:
@@ -367,8 +374,8 @@ def read_toml_scene(path, overrides=()):
         path=str(path),
         bodies=bodies,
         effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
-        solver=read_solver(top.table("solver", ["dt", "method", "tolerance", "max_iterations",
-                                                 "jacobi_omega", "rotations"])),
+        solver=read_solver(top.table("solver", ["dt", "step", "max_newton", "method", "tolerance",
+                                                 "max_iterations", "jacobi_omega", "rotations"])),
     )
     scene.solver.check(f"{path}: solver")
     for i, raw in enumerate(list_of_tables(data, "initial", path)):
@@ -540,6 +547,8 @@ def read_effects(t, path):
 def read_solver(t):
     s = SolverSettings()
     s.dt = t.get("dt", "float", s.dt)
+    s.step = t.get("step", "str", s.step)
+    s.max_newton = t.get("max_newton", "int", s.max_newton)
     s.method = t.get("method", "str", s.method)
     s.tolerance = t.get("tolerance", "float", s.tolerance)
     s.max_iterations = t.get("max_iterations", "int", s.max_iterations)

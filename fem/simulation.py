@@ -1,23 +1,26 @@
-"""A running scene: model + state + solver, stepped in time.
+"""A running scene: the driver that schedules impulses, times steps and reports.
 
-    sim = Simulation(load_scene("cube86"), method="linear")
-    info = sim.step()            # solver_iters, residual, wall_ms, ...
+    sim = Simulation(scene, method="linear")
+    info = sim.step()            # newton_iters, solver_iters, residual, wall_ms, ...
     x = sim.positions()          # (n, 3) numpy
     sim.stats()                  # + energies, volume ratios, inverted tets
+
+The step itself is `ImplicitSolver.step(state_in, state_out, dt)` (fem/solver.py);
+two States take turns, and a rejected step is simply not swapped in.
 """
 
-import math
 import sys
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import taichi as ti
 
+from fem.builder import build_model, initial_state
 from fem.errors import FemError
 from fem.measure import Measure
-from fem.model import Model, State
-from fem.scene import METHODS, select_vertices
+from fem.model import State
+from fem.scene import METHODS, Material, select_vertices
 from fem.solver import ImplicitSolver
 
 
@@ -29,30 +32,29 @@ def add_velocity(v: ti.template(), free: ti.template(), ids: ti.types.ndarray(),
         v[i] += free[i] * ti.Vector([dv[k, 0], dv[k, 1], dv[k, 2]])
 
 
-CG_UNROLL = 2   # PCG iterations per kernel launch: fewer launches, same iteration count
-
-
 class Simulation:
     """Steps one scene with backward Euler; see fem.solver for the maths.
 
     method: None keeps each body's own method, "linear" / "corotational" overrides all.
-    solver ("pcg" | "jacobi"), dt (s), tolerance, max_iterations: override the scene's
-    solver settings where not None.
+    solver ("pcg" | "jacobi"), step ("newton" | "single"), dt (s), tolerance,
+    max_iterations: override the scene's solver settings where not None.
     """
 
-    def __init__(self, scene, method=None, solver=None, dt=None, tolerance=None, max_iterations=None):
+    def __init__(self, scene, method=None, solver=None, dt=None, tolerance=None, max_iterations=None,
+                 step=None):
         if method is not None:
             if method not in METHODS:
                 raise FemError(f"method must be one of {METHODS}, got {method!r}")
             scene = scene.with_method(method)
-        overrides = {"method": solver, "dt": dt, "tolerance": tolerance, "max_iterations": max_iterations}
+        overrides = {"method": solver, "dt": dt, "tolerance": tolerance, "max_iterations": max_iterations,
+                     "step": step}
         self.settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
         self.settings.check(scene.path or scene.name)
-        self.scene = scene
-        self.model = Model(scene)
-        self.state = State(self.model.n_vertices)
-        self.solver = ImplicitSolver(self.model, scene.effects)
-        self.measure = Measure(self.model)
+        self.scene = scene                      # the description; never edited
+        self.model = build_model(scene)
+        self.state, self.spare = State(self.model.n_vertices), State(self.model.n_vertices)
+        self.solver = ImplicitSolver(self.model, scene.effects, self.settings)
+        self.measure = Measure(self.model, scene.effects.gravity)
         offsets = [b.vertices.start for b in self.model.bodies]
         self.impulses = []
         for k, imp in enumerate(scene.impulses):
@@ -66,148 +68,40 @@ class Simulation:
 
     def reset(self):
         """Back to t = 0 with the scene's initial conditions."""
-        self.state.load(*self.model.initial_state())
-        self.solver.reset_rotations()
-        self.rotated = False                 # rotated_Bm holds Bm
-        self.solver.pressed.fill(0)          # no vertex starts out pushed by the ground
+        self.state.load(*initial_state(self.scene, self.model))
+        self.solver.reset()
         self.t = 0.0
         self.steps = 0
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
-        self.preconditioner_key = None
-        self.omega_key, self.omega = None, None
         self.last = {}
 
     @property
     def coefficients(self):
-        """(cM, cK) of A = cM M + cK K: backward Euler with Rayleigh damping."""
-        dt, e = self.settings.dt, self.scene.effects
-        return 1 + dt * e.alpha, dt * e.beta + dt * dt
+        """(cM, cK) of the Newton matrix H = cM M + cK K at the current dt."""
+        return self.solver.coefficients(self.settings.dt)
 
     def step(self):
         """Advance one time step; returns what the step did (dict)."""
         start = time.perf_counter()
-        s, x, v = self.solver, self.state.x, self.state.v
         dt = self.settings.dt
         while self.pending and self.pending[0][0] <= self.t + 0.5 * dt:
             _, ids, dv = self.pending.pop(0)
             self.apply_impulse(ids, dv)
-        corot = self.model.any_corotational
-        cM, cK = self.coefficients
-
-        if corot:
-            s.extract_rotations(x, self.settings.rotations == "svd")
-            self.rotated = True
-            ti.sync()
-        elif self.rotated:                      # every body switched to linear: unrotate
-            s.reset_rotations()
-            self.rotated = False
-        rotation_ms = 1e3 * (time.perf_counter() - start)
-        if self.settings.method == "jacobi":
-            self.jacobi_weight(cM, cK)
-        key = (cM, cK, corot, self.model.material_version)
-        if corot or key != self.preconditioner_key:
-            s.build_preconditioner(cM, cK)   # linear: once, as A never changes
-            self.preconditioner_key = key
-        if self.scene.effects.ground is not None:
-            s.detect_contacts(x, v, dt)
-        s.elastic_forces(x)
-        bb = s.assemble_rhs(x, v, dt)
-        if self.settings.method == "pcg":
-            iterations, rr = self.solve_pcg(bb, cM, cK)
-        else:
-            iterations, rr = self.solve_jacobi(bb, cM, cK)
-        if self.scene.effects.ground is not None:
-            s.beta[None] = 0.0
-            s.stiffness_product(s.solution, s.solution)
-            s.ground_reaction(cM, cK)
-        bad = s.commit(x, v, dt)
-        finite = bad == 0
-        if finite:
-            if self.scene.effects.ground is not None:
-                s.ground_contact(x, v)
-            self.t += dt
-        else:
-            s.restore(x, v)
-            if not self.warned_nonfinite:
-                print(f"warning: step {self.steps} gave non-finite values in {bad} vertices; "
-                      "rejected it and kept the previous state", file=sys.stderr)
-                self.warned_nonfinite = True
-        ti.sync()
+        info = self.solver.step(self.state, self.spare, dt)
         self.steps += 1
-        wall_ms = 1e3 * (time.perf_counter() - start)
-        residual = math.sqrt(rr / bb) if bb > 0 else math.sqrt(rr)
-        self.last = {
-            "step": self.steps,
-            "t": self.t,
-            "wall_ms": wall_ms,
-            "rotation_ms": rotation_ms if corot else 0.0,
-            "solve_ms": wall_ms - (rotation_ms if corot else 0.0),
-            "solver": self.settings.method,
-            "solver_iters": iterations,
-            "residual": residual if math.isfinite(residual) else None,
-            "converged": bool(residual <= self.settings.tolerance),
-            "corotational": [b.method == "corotational" for b in self.scene.bodies],
-            "finite": finite,
-        }
+        if info.finite:
+            self.state, self.spare = self.spare, self.state
+            self.t += dt
+        elif not self.warned_nonfinite:
+            print(f"warning: step {self.steps} (t = {self.t:g} s) gave non-finite values; "
+                  "rejected it and kept the previous state", file=sys.stderr)
+            self.warned_nonfinite = True
+        self.last = {"step": self.steps, "t": self.t, "wall_ms": 1e3 * (time.perf_counter() - start),
+                     "solver": self.settings.method, "step_kind": self.settings.step, **asdict(info),
+                     "corotational": [b.method == "corotational" for b in self.model.bodies]}
         return self.last
 
-    def solve_pcg(self, scale, cM, cK):
-        """Jacobi-preconditioned CG from the warm start v; returns (iterations, |r|^2)."""
-        s = self.solver
-        target = self.settings.tolerance ** 2 * (scale if scale > 0 else 1.0)
-        s.stiffness_product(s.solution, s.solution)
-        rr = s.start_residual(cM, cK)
-        if rr > target:
-            while s.active[None]:
-                rr = s.cg_iterations(cM, cK, target, self.settings.max_iterations, CG_UNROLL)
-        return s.iterations[None], rr
-
-    def solve_jacobi(self, bb, cM, cK):
-        """Weighted block-Jacobi iteration; returns (iterations, |r|^2 of the last checked iterate)."""
-        s = self.solver
-        target = self.settings.tolerance ** 2 * (bb if bb > 0 else 1.0)
-        omega = self.settings.jacobi_omega or self.omega
-        iterations, rr = 0, math.inf
-        while iterations < self.settings.max_iterations:
-            s.stiffness_product(s.solution, s.solution)
-            rr = s.jacobi_update(cM, cK, omega)
-            iterations += 1
-            if rr <= target:
-                break
-        return iterations, rr
-
-    def jacobi_weight(self, cM, cK):
-        """omega = 1.5 / lambda_max(P A), lambda_max from 30 power iterations (rotations ignored:
-        they barely move the spectrum), so the iteration cannot diverge (needs omega < 2 / lambda_max)."""
-        key = (cM, cK, self.model.material_version)
-        if key != self.omega_key:
-            s = self.solver
-            s.build_preconditioner(cM, cK)
-            self.preconditioner_key = None
-            P = s.block_inverse.to_numpy()
-            u = np.random.default_rng(0).standard_normal((self.model.n_vertices, 3))
-            lam = 1.0
-            for _ in range(30):
-                u /= np.linalg.norm(u)
-                Au = self.apply_matrix(u, cM, cK)
-                w = np.einsum("nij,nj->ni", P, Au)
-                lam = float(np.vdot(u, w)) if np.vdot(u, u) > 0 else 1.0
-                u = w
-            self.omega, self.omega_key = 1.5 / max(lam, 1e-12), key
-        return self.omega
-
-    def apply_matrix(self, u, cM=None, cK=None):
-        """A u for a (n, 3) numpy array u, through the same kernels as the solver (for checks)."""
-        s = self.solver
-        if cM is None:
-            cM, cK = self.coefficients
-        s.p.from_numpy(u)
-        s.beta[None] = 0.0
-        s.stiffness_product(s.p, s.p)
-        s.matrix_product(s.p, s.Ap, cM, cK)
-        return s.Ap.to_numpy().astype(np.float64)
-
-    # ------------------------------------------------------------ interaction
+    # ------------------------------------------------------------ interaction: the one path for live edits
 
     def apply_impulse(self, ids, delta_v):
         """Add delta_v (m/s; (3,) or (k, 3)) to the velocities of global vertex ids (k,)."""
@@ -224,9 +118,45 @@ class Simulation:
             self.model.set_method(i, method)
 
     def set_material(self, body, E, nu):
-        from fem.scene import Material
-        Material(E, nu, self.scene.bodies[body].material.density).check(f"body {body}")
-        self.model.set_material(body, E, nu)
+        """Young's modulus E (Pa) and Poisson ratio nu of one body, live."""
+        self.model.set_material(body, Material(E, nu, self.model.bodies[body].material.density))
+
+    # ------------------------------------------------------------ the engine's maths, for checks
+
+    def _scratch(self, x):
+        """A State holding positions x ((n, 3) numpy; None: the current ones) and zero velocities."""
+        if x is None:
+            return self.state
+        self.spare.load(np.asarray(x, np.float64), np.zeros((self.model.n_vertices, 3)))
+        return self.spare
+
+    def rotations(self, x=None):
+        """(m, 3, 3) the rotation R of every tet at positions x, as the solver extracts it
+        (identity for linear tets); leaves the solver's rotations there."""
+        self.solver.update_rotations(self._scratch(x).x, self.model.any_corotational)
+        rotated_Bm = self.solver.rotated_Bm.to_numpy().astype(np.float64)
+        Dm = np.linalg.inv(self.solver.model.Bm.to_numpy().astype(np.float64))
+        return np.transpose(Dm @ rotated_Bm, (0, 2, 1))            # R = (Dm Bm R^T)^T
+
+    def forces(self, x=None):
+        """(n, 3) elastic forces f(x) = -grad Psi(x) (N) at positions x (None: the current ones)."""
+        state = self._scratch(x)
+        self.solver.update_rotations(state.x, self.model.any_corotational)
+        self.solver.elastic_forces(state.x, self.solver.Ap)
+        return self.solver.Ap.to_numpy().astype(np.float64)
+
+    def energy(self, x=None):
+        """Elastic energy Psi(x) (J, float64) at positions x (None: the current ones)."""
+        state = self._scratch(x)
+        return self.measure.read(state.x, state.v)["elastic_energy"]
+
+    def apply_matrix(self, u, cM=None, cK=None, x=None):
+        """H u = cM M u + cK K(R) u for a (n, 3) numpy u, with the rotations at positions x
+        (None: the current ones); (cM, cK) default to the step's."""
+        if cM is None:
+            cM, cK = self.coefficients
+        self.solver.update_rotations(self._scratch(x).x, self.model.any_corotational)
+        return self.solver.apply_matrix(np.asarray(u, np.float64), cM, cK)
 
     # ------------------------------------------------------------ reading
 
@@ -235,13 +165,14 @@ class Simulation:
         return self.state.x.to_numpy().astype(np.float64)
 
     def velocities(self):
+        """(n, 3) float64 vertex velocities, m/s."""
         return self.state.v.to_numpy().astype(np.float64)
 
     def stats(self):
         """The last step's numbers plus energies (J), volume ratios and inverted tets now."""
         out = {"step": self.steps, "t": self.t, "solver": self.settings.method}
         out.update(self.last)
-        out["corotational"] = [b.method == "corotational" for b in self.scene.bodies]   # now, after toggles
+        out["corotational"] = [b.method == "corotational" for b in self.model.bodies]   # now, after toggles
         out.update(self.measure.read(self.state.x, self.state.v))
         return out
 

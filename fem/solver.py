@@ -1,60 +1,268 @@
-"""Backward Euler with a matrix-free linear solve (method.md).
+"""Backward Euler as a minimisation, solved matrix-free (method.md, "The step as a minimisation").
 
-One step solves
+With x = x_n + dt v, one step finds the velocity v that minimises the incremental potential
 
-    A v_new = M v + dt (f_elastic(x) + f_external),   A = (1 + dt alpha) M + (dt beta + dt^2) K(R)
-    x_new   = x + dt v_new
+    E(v) = 1/2 |v - v_n|_M^2 + dt/2 v^T D v - dt v^T M g + Psi(x_n + dt v)        (J)
 
-with K(R) = sum_e R Ke R^T never assembled: `stiffness_product` applies it tet by
-tet, and per-vertex sums gather over the model's adjacency (no atomics, so the
-result is the same bit for bit on every run). PCG (Jacobi-preconditioned CG) is
-the default; weighted Jacobi iteration is the cheap alternative.
+(D = alpha M + beta K_n: Rayleigh damping with the stiffness frozen at the step's start;
+Psi: the elastic energy, corotated linear or linear per body). Its stationarity condition
+M (v - v_n) + dt D v - dt M g - dt f(x) = 0 is exactly backward Euler with damping.
 
-Effects a scene leaves off are not compiled: gravity, pins and ground contact are
-`ti.static` branches fixed when the solver is made, and rotations are only
-extracted when some body is corotational. Linear and corotational tets share every
-kernel: corotation only changes the per-tet matrix `rotated_Bm` once per step.
+Newton iterations minimise E: each solves H d = -grad E with the positive definite
+
+    H = (1 + dt alpha) M + (dt beta + dt^2) K(R),     R: rotations at the current iterate,
+
+by Jacobi-preconditioned CG (or weighted Jacobi iteration), never assembling H: the
+stiffness product runs tet by tet and per-vertex sums gather over the model's adjacency
+(no atomics, so every run is the same bit for bit). A backtracking line search on E
+(Armijo) accepts only iterates that lower E, with E summed in float64 whatever the
+fields' precision. The first Newton iteration from v = 0 is the classical one-solve
+(stiffness-warping) step: `step = "single"` stops there, without line search.
+
+Convergence is tested per body: body b has converged when |grad_b E| <= tol * s_b, with
+s_b the size of the step's own terms (momentum M v_n, elastic and gravity impulses) and a
+floor from the body's size, mass and stiffness at the precision's round-off, so a body at
+rest needs no iteration and a violently pushed body does not set the scale for a quiet one.
+
+Effects a scene leaves off are not compiled: gravity, pins, ground contact and stiffness
+damping are `ti.static` branches fixed when the solver is made, and rotations are only
+extracted while some body is corotational. Linear and corotational tets share every
+kernel: corotation only changes the per-tet matrix `rotated_Bm` = Bm R^T.
 """
 
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
 import taichi as ti
 
-from fem.elastic import (corner_forces, edge_matrix, is_finite, linear_stress, polar_rotation,
-                         quaternion_matrix, refine_rotation, stiffness_block)
-from fem.runtime import serial_loops
+from fem.elastic import (corner_forces, edge_matrix, energy_density, is_finite, linear_stress,
+                         stiffness_block)
+from fem.rotation import polar_rotation, quaternion_of, rotation_of
+from fem.runtime import epsilon, serial_loops
+
+ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
+MAX_HALVINGS = 12        # line search: a >= 2^-12
+FORCING = 0.1            # inexact Newton: CG reduces the gradient by this factor (at least)
+ROUNDOFF = 30.0          # per-body floor of the stopping test, in units of the precision's epsilon
+CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
+
+
+@dataclass
+class StepInfo:
+    """What one implicit step did.
+
+    finite: every new position and velocity is finite (else the caller keeps the old state).
+    converged: every body's gradient met the tolerance (single step: the linear solve did).
+    residual: sqrt(sum over bodies of (|grad_b E| / s_b)^2), dimensionless; <= tolerance when converged.
+    newton_iters: Newton iterations (1 for a single step or an all-linear scene).
+    solver_iters: CG or Jacobi iterations summed over the Newton iterations.
+    line_search_steps: step halvings summed over the Newton iterations.
+    rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
+    """
+
+    finite: bool
+    converged: bool
+    residual: float | None
+    newton_iters: int
+    solver_iters: int
+    line_search_steps: int
+    rotation_ms: float
+    solve_ms: float
 
 
 @ti.data_oriented
 class ImplicitSolver:
-    """Work fields and kernels of the implicit step for one model."""
+    """Work fields and kernels of the implicit step for one model; `step` is the whole step.
 
-    def __init__(self, model, effects):
-        n, m = model.n_vertices, model.n_tets
-        self.model = model
-        self.has_gravity = effects.gravity is not None    # compile-time switch
-        self.gravity = effects.gravity or (0.0, 0.0, 0.0)  # m/s^2
-        self.has_ground = effects.ground is not None      # compile-time switch
-        self.ground = effects.ground or 0.0               # plane height y, m
+    settings: the SolverSettings object, read at every step (a window may change it live).
+    """
+
+    def __init__(self, model, effects, settings):
+        n, m, nb = model.n_vertices, model.n_tets, len(model.bodies)
+        self.model, self.settings = model, settings
+        self.alpha, self.beta_damping = effects.alpha, effects.beta
+        self.has_gravity = effects.gravity is not None       # compile-time switches
+        self.gravity = effects.gravity or (0.0, 0.0, 0.0)     # m/s^2
+        self.has_ground = effects.ground is not None
+        self.ground = effects.ground or 0.0                   # plane height y, m
         self.friction = effects.friction
-        self.pins = model.has_pins                        # compile-time: filter pinned rows
-        self.serial_tets = serial_loops(m, "tets")        # compile-time: small loops on one thread
+        self.has_stiffness_damping = effects.beta > 0         # D includes beta K_n
+        self.pins = model.has_pins
+        self.serial_tets = serial_loops(m, "tets")            # small loops on one thread
         self.serial_vertices = serial_loops(n, "vertices")
         vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
-        self.rotations = ti.Matrix.field(3, 3, float, m)  # R per tet (identity for linear tets)
-        self.rotated_Bm = ti.Matrix.field(3, 3, float, m) # Bm R^T: the only form the solve needs
-        self.quaternions = ti.Vector.field(4, float, m)   # the same R as (x, y, z, w): next step's warm start
-        self.corner = vec(4 * m)                          # per-corner values before the gather
-        self.b, self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n), vec(n)
-        self.solution = vec(n)                            # v_new while solving
-        self.block_inverse = ti.Matrix.field(3, 3, float, n)  # Jacobi preconditioner, inverse 3x3 blocks of A
-        self.x_backup, self.v_backup = vec(n), vec(n)
+        self.rotated_Bm = ti.Matrix.field(3, 3, float, m)     # Bm R^T at the current iterate
+        self.damping_Bm = ti.Matrix.field(3, 3, float, m if self.has_stiffness_damping else 1)  # Bm R_n^T
+        self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
+        self.corner = vec(4 * m)                              # per-corner values before the gather
+        self.velocity = vec(n)                                # v of the accepted Newton iterate, m/s
+        self.rhs = vec(n)                                     # -grad E at that iterate (unfiltered), N s
+        self.solution = vec(n)                                # the Newton direction d, m/s
+        self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n)
+        self.block_inverse = ti.Matrix.field(3, 3, float, n)  # Jacobi preconditioner: inverse 3x3 blocks of H
         self.contact = ti.field(ti.i32, n if self.has_ground else 1)   # 1: on the ground this step
         self.pressed = ti.field(ti.i32, n if self.has_ground else 1)   # 1: the ground pushed it last step
-        self.rz = ti.field(float, ())                     # PCG scalars stay on the device
+        self.vertex_body = ti.field(ti.i32, n)
+        self.body_floor = ti.field(ti.f64, nb)                # (N s)^2: round-off floor of |grad_b|^2
+        self.body_scale = ti.field(ti.f64, nb)                # (N s)^2: s_b^2 of this step
+        self.body_weight = ti.field(float, nb)                # 1 / (tol^2 s_b^2)
+        self.body_gradient = ti.field(ti.f64, nb)             # |grad_b E|^2
+        self.rz = ti.field(float, ())                         # PCG scalars stay on the device
         self.rr = ti.field(float, ())
-        self.beta = ti.field(float, ())
+        self.cg_beta = ti.field(float, ())
         self.iterations = ti.field(ti.i32, ())
-        self.active = ti.field(ti.i32, ())                # 1 while PCG iterates
+        self.active = ti.field(ti.i32, ())                    # 1 while PCG iterates
+        self.vertex_body.from_numpy(model.vertex_body)
+        self.model_version = None                             # (model edit, dt) the cached data is for
+        self.preconditioner_key = None
+        self.omega_key, self.omega = None, None
+        self.rotated = False                                  # rotated_Bm holds rotations (not Bm)
+        self.reset()
+
+    def reset(self):
+        """Forget everything from earlier steps: rotations, warm starts, ground contacts."""
         self.reset_rotations()
+        self.rotated = False
+        self.pressed.fill(0)
+
+    # ------------------------------------------------------------ the step
+
+    def coefficients(self, dt):
+        """(cM, cK) of H = cM M + cK K: backward Euler with Rayleigh damping."""
+        return 1 + dt * self.alpha, dt * self.beta_damping + dt * dt
+
+    def step(self, state_in, state_out, dt):
+        """One backward Euler step from state_in into state_out; returns a StepInfo.
+
+        state_in is never written. When the result is not finite, state_out holds garbage
+        and the caller keeps state_in (a rejected step is a step not swapped in).
+        """
+        start = time.perf_counter()
+        settings, model = self.settings, self.model
+        corotational = model.any_corotational
+        newton = settings.step == "newton" and corotational   # linear: one Newton iteration is exact
+        cM, cK = self.coefficients(dt)
+        self.refresh(cM, cK, dt)
+
+        self.start_iterate(state_in.x, state_in.v, state_out.x, state_out.v, dt)
+        rotation_ms = self.update_rotations(state_out.x, corotational)
+        if self.has_stiffness_damping:
+            self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
+        if corotational or self.preconditioner_key != (cM, cK):
+            self.build_preconditioner(cM, cK)                 # linear: built once, as H never changes
+            self.preconditioner_key = None if corotational else (cM, cK)
+        rho = self.gradient(state_in.v, state_out.x, state_out.v, dt, settings.tolerance, True)
+        energy = self.energy(state_in.v, state_out.x, state_out.v, dt) if newton else 0.0
+
+        newton_iters = solver_iters = halvings = 0
+        while rho > 1.0 and newton_iters < (settings.max_newton if newton else 1):
+            target = 1.0 if not newton else max(1.0, FORCING ** 2 * rho)
+            solver_iters += self.solve(state_in.v, cM, cK, target, warm=newton_iters == 0)
+            newton_iters += 1
+            if not newton:
+                rho = float(self.rr[None])                    # the linear solve's own residual
+                self.try_step(state_in.x, state_out.x, state_out.v, 1.0, dt)
+                break
+            slope = self.slope()                              # grad E . d (J), < 0 for a descent direction
+            a, accepted = 1.0, False
+            for _ in range(MAX_HALVINGS + 1):
+                self.try_step(state_in.x, state_out.x, state_out.v, a, dt)
+                rotation_ms += self.update_rotations(state_out.x, True)
+                trial = self.energy(state_in.v, state_out.x, state_out.v, dt)
+                if trial <= energy + ARMIJO * a * slope:
+                    accepted = True
+                    break
+                a *= 0.5
+                halvings += 1
+            if not accepted:                                  # no decrease left at this precision
+                self.try_step(state_in.x, state_out.x, state_out.v, 0.0, dt)
+                break
+            energy = trial
+            self.accept(state_out.v)
+            rho = self.gradient(state_in.v, state_out.x, state_out.v, dt, settings.tolerance, False)
+
+        if self.has_ground:
+            self.ground_reaction(cM, cK, newton)
+        bad = self.check_finite(state_out.x, state_out.v)
+        if bad == 0 and self.has_ground:
+            self.ground_contact(state_out.x, state_out.v)
+        ti.sync()
+        residual = settings.tolerance * math.sqrt(max(rho, 0.0))
+        wall_ms = 1e3 * (time.perf_counter() - start)
+        return StepInfo(finite=bad == 0, converged=bool(rho <= 1.0),
+                        residual=residual if math.isfinite(residual) else None,
+                        newton_iters=max(newton_iters, 1), solver_iters=solver_iters,
+                        line_search_steps=halvings, rotation_ms=rotation_ms,
+                        solve_ms=wall_ms - rotation_ms)
+
+    def refresh(self, cM, cK, dt):
+        """Re-derive what depends on the model's methods and materials after a live edit."""
+        if (self.model.version, dt) != self.model_version:
+            self.model_version = (self.model.version, dt)
+            self.preconditioner_key = self.omega_key = None
+            self.body_floor.from_numpy(self.model.body_floor(ROUNDOFF * epsilon(), dt))
+            if not self.model.any_corotational and self.rotated:
+                self.reset_rotations()                        # every body switched to linear: unrotate
+                self.rotated = False
+        if self.settings.method == "jacobi":
+            self.jacobi_weight(cM, cK)
+
+    def update_rotations(self, x, corotational):
+        """Rotations at positions x (when some body is corotational); returns the time spent (ms)."""
+        if not corotational:
+            return 0.0
+        start = time.perf_counter()
+        self.extract_rotations(x, self.settings.rotations == "svd")
+        self.rotated = True
+        ti.sync()
+        return 1e3 * (time.perf_counter() - start)
+
+    def solve(self, v0, cM, cK, target, warm):
+        """H d = -grad E until the weighted residual sum_b |r_b|^2 w_b <= target; returns iterations."""
+        self.start_direction(v0, warm)
+        if self.settings.method == "pcg":
+            self.stiffness_product(self.solution)
+            if self.start_residual(cM, cK) > target:
+                while self.active[None]:
+                    self.cg_iterations(cM, cK, target, self.settings.max_iterations, CG_UNROLL)
+            return int(self.iterations[None])
+        iterations = 0
+        while iterations < self.settings.max_iterations:
+            self.stiffness_product(self.solution)
+            self.rr[None] = self.jacobi_update(cM, cK, self.omega)
+            iterations += 1
+            if self.rr[None] <= target:
+                break
+        return iterations
+
+    def jacobi_weight(self, cM, cK):
+        """omega = 1.5 / lambda_max(P H), lambda_max from 30 power iterations (rotations ignored:
+        they barely move the spectrum), so the iteration cannot diverge (needs omega < 2 / lambda_max)."""
+        if self.settings.jacobi_omega:
+            self.omega = self.settings.jacobi_omega
+            return
+        key = (cM, cK)
+        if key != self.omega_key:
+            self.build_preconditioner(cM, cK)
+            self.preconditioner_key = None
+            P = self.block_inverse.to_numpy()
+            u = np.random.default_rng(0).standard_normal((self.model.n_vertices, 3))
+            lam = 1.0
+            for _ in range(30):
+                u /= np.linalg.norm(u)
+                w = np.einsum("nij,nj->ni", P, self.apply_matrix(u, cM, cK))
+                lam = float(np.vdot(u, w)) if np.vdot(u, u) > 0 else 1.0
+                u = w
+            self.omega, self.omega_key = 1.5 / max(lam, 1e-12), key
+
+    def apply_matrix(self, u, cM, cK):
+        """H u for a (n, 3) numpy array u with the current rotations (for checks and tests)."""
+        self.p.from_numpy(u)
+        self.stiffness_product(self.p)
+        self.matrix_product(self.p, self.Ap, cM, cK)
+        return self.Ap.to_numpy().astype(np.float64)
 
     # ------------------------------------------------------------ per-tet kernels
 
@@ -62,82 +270,113 @@ class ImplicitSolver:
     def reset_rotations(self):
         """Every tet unrotated: R = I and rotated_Bm = Bm (what linear tets always use)."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotations:
-            self.rotations[e] = ti.Matrix.identity(float, 3)
+        for e in self.rotated_Bm:
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
             self.rotated_Bm[e] = self.model.Bm[e]
 
     @ti.func
     def edges(self, x: ti.template(), e):
-        """Ds of tet e for the vertex values x (positions or velocities)."""
+        """Ds of tet e for the vertex values x (positions, velocities or directions)."""
         t = self.model.tets[e]
         return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]])
 
     @ti.kernel
     def extract_rotations(self, x: ti.template(), svd: ti.template()):
-        """R = polar rotation of F for every corotational tet, and rotated_Bm = Bm R^T.
+        """R = polar rotation of F for every corotational tet, kept as rotated_Bm = Bm R^T.
 
-        svd=False: warm-started iterative extraction for tets with det F > 0, and
-        the SVD only for inverted or flat tets, where its reflection-safe answer
-        matters; svd=True: the SVD for every tet (the reference).
+        svd=False: warm-started iteration from last time's R, falling back to the SVD where it
+        does not converge or the tet is inverted; svd=True: the SVD for every tet (the reference).
         """
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotations:
-            R = ti.Matrix.identity(float, 3)
+        for e in self.rotated_Bm:
             if self.model.corotational[e]:
                 F = self.edges(x, e) @ self.model.Bm[e]
-                if ti.static(not svd):
-                    if F.determinant() > 0:
-                        q = refine_rotation(F, self.quaternions[e], 8)
-                        self.quaternions[e] = q
-                        R = quaternion_matrix(q)
-                    else:
-                        R = polar_rotation(F)
-                else:
+                R, q = ti.Matrix.identity(float, 3), self.quaternions[e]
+                if ti.static(svd):
                     R = polar_rotation(F)
-            self.rotations[e] = R
-            self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
+                    q = quaternion_of(R)
+                else:
+                    R, q = rotation_of(F, q)
+                self.quaternions[e] = q
+                self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
+            else:
+                self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
+                self.rotated_Bm[e] = self.model.Bm[e]
+
+    @ti.kernel
+    def freeze_damping_frame(self):
+        """damping_Bm <- rotated_Bm: the damping stiffness K_n uses the rotations at the step's start."""
+        ti.loop_config(serialize=self.serial_tets)
+        for e in self.rotated_Bm:
+            self.damping_Bm[e] = self.rotated_Bm[e]
 
     # Corotational FEM without a rotation in the inner loop: sigma is isotropic, so
     #     R sigma(sym(R^T F) - I) Bm^T = sigma(sym(Ds Bm R^T) - I) (Bm R^T)^T,
     # i.e. f = -R Ke (R^T x - X) is the linear formula with Bm replaced by Bm R^T
-    # (rotated_Bm, refreshed once per step). Linear tets keep rotated_Bm = Bm.
-
-    @ti.kernel
-    def elastic_forces(self, x: ti.template()):
-        """corner <- f_e = -R Ke (R^T x_e - X_e) per tet (linear: R = I)."""
-        ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotations:
-            F = self.edges(x, e) @ self.rotated_Bm[e]               # F R^T
-            eps = 0.5 * (F + F.transpose()) - ti.Matrix.identity(float, 3)
-            self.store_corners(e, linear_stress(eps, self.model.mu[e], self.model.lam[e]))
-
-    @ti.kernel
-    def stiffness_product(self, u: ti.template(), w: ti.template()):
-        """corner <- (K(R) d)_e per tet for the direction d = u + beta w (N/m times m/s)."""
-        ti.loop_config(serialize=self.serial_tets)
-        for e in range(self.model.n_tets):
-            self.tet_stiffness(e, u, w)
+    # (rotated_Bm). Linear tets keep rotated_Bm = Bm.
 
     @ti.func
-    def tet_stiffness(self, e, u: ti.template(), w: ti.template()):
-        """One tet's share of K(R) d, d = u + beta w: taking d = z + beta p here fuses
-        the CG direction update into this pass."""
-        beta = self.beta[None]
+    def tet_stiffness(self, e, u: ti.template(), w: ti.template(), beta):
+        """corner <- one tet's share of K(R) d for the direction d = u + beta w (N/m times m/s).
+        Taking d = z + beta p here fuses the CG direction update into this pass."""
         t = self.model.tets[e]
         d0, d1 = u[t[0]] + beta * w[t[0]], u[t[1]] + beta * w[t[1]]
         d2, d3 = u[t[2]] + beta * w[t[2]], u[t[3]] + beta * w[t[3]]
-        dF = edge_matrix(d0, d1, d2, d3) @ self.rotated_Bm[e]
+        B = self.rotated_Bm[e]
+        dF = edge_matrix(d0, d1, d2, d3) @ B
         eps = 0.5 * (dF + dF.transpose())
-        self.store_corners(e, -linear_stress(eps, self.model.mu[e], self.model.lam[e]))
+        self.store_corners(e, corner_forces(-linear_stress(eps, self.model.mu[e], self.model.lam[e]),
+                                            B, self.model.rest_volume[e]))
+
+    @ti.kernel
+    def stiffness_product(self, u: ti.template()):
+        """corner <- (K(R) u)_e per tet."""
+        ti.loop_config(serialize=self.serial_tets)
+        for e in range(self.model.n_tets):
+            self.tet_stiffness(e, u, u, 0.0)
 
     @ti.func
-    def store_corners(self, e, P):
-        f0, f1, f2, f3 = corner_forces(P, self.rotated_Bm[e], self.model.rest_volume[e])
-        self.corner[4 * e + 0] = f0
-        self.corner[4 * e + 1] = f1
-        self.corner[4 * e + 2] = f2
-        self.corner[4 * e + 3] = f3
+    def store_corners(self, e, f: ti.template()):
+        for k in ti.static(range(4)):
+            self.corner[4 * e + k] = f[k]
+
+    @ti.func
+    def elastic_stress(self, x: ti.template(), e):
+        """sigma(sym(F R^T) - I) of tet e at positions x: the stress in the tet's rotated frame (Pa)."""
+        F = self.edges(x, e) @ self.rotated_Bm[e]               # F R^T
+        eps = 0.5 * (F + F.transpose()) - ti.Matrix.identity(float, 3)
+        return linear_stress(eps, self.model.mu[e], self.model.lam[e])
+
+    @ti.kernel
+    def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float):
+        """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e."""
+        ti.loop_config(serialize=self.serial_tets)
+        for e in self.rotated_Bm:
+            W = self.model.rest_volume[e]
+            self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
+            if ti.static(self.has_stiffness_damping):
+                B = self.damping_Bm[e]
+                dF = self.edges(v, e) @ B
+                eps = 0.5 * (dF + dF.transpose())
+                f = corner_forces(-dt * self.beta_damping * linear_stress(eps, self.model.mu[e], self.model.lam[e]),
+                                  B, W)
+                for k in ti.static(range(4)):
+                    self.corner[4 * e + k] += f[k]
+
+    @ti.kernel
+    def energy_tets(self, x: ti.template(), v: ti.template(), dt: float) -> ti.f64:
+        """Psi(x) + dt beta/2 v^T K_n v, summed in float64 (J)."""
+        total = ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=self.serial_tets)
+        for e in self.rotated_Bm:
+            W = ti.cast(self.model.rest_volume[e], ti.f64)
+            mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
+            F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
+            total += W * energy_density(F, mu, lam, 1.0)
+            if ti.static(self.has_stiffness_damping):
+                dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm[e], ti.f64)
+                total += ti.cast(dt * self.beta_damping, ti.f64) * W * energy_density(dF, mu, lam, 0.0)
+        return total
 
     # ------------------------------------------------------------ per-vertex kernels
 
@@ -160,9 +399,127 @@ class ImplicitSolver:
                 a[1] = 0.0
         return a
 
+    @ti.func
+    def apply_H(self, i, u: ti.template(), cM, cK):
+        """(H u)_i = cM m_i u_i + cK (K u)_i, filtered; K u gathered from `corner`."""
+        return self.filtered(i, cM * self.model.mass[i] * u[i] + cK * self.gather(i))
+
+    @ti.func
+    def gravity_vector(self):
+        return ti.Vector(self.gravity, dt=float)
+
+    @ti.kernel
+    def start_iterate(self, x0: ti.template(), v0: ti.template(), x: ti.template(), v: ti.template(),
+                      dt: float):
+        """The first Newton iterate: v = 0, except the normal velocity of vertices on the ground,
+        prescribed so that they land on the plane (the ground's active set is chosen here)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in x0:
+            u = ti.Vector.zero(float, 3)
+            if ti.static(self.has_ground):
+                self.contact[i] = 0
+                if self.model.free[i] > 0 and (x0[i][1] + dt * v0[i][1] < self.ground or self.pressed[i]):
+                    self.contact[i] = 1
+                    u[1] = (self.ground - x0[i][1]) / dt
+            self.velocity[i] = u
+            v[i] = u
+            x[i] = x0[i] + dt * u
+
+    @ti.kernel
+    def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, first: ti.template()):
+        """rhs <- -grad E = M v_n + dt M g - (1 + dt alpha) M v - (gathered tet terms), and the
+        per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2."""
+        for b in self.body_gradient:
+            self.body_gradient[b] = 0.0
+            if ti.static(first):
+                self.body_scale[b] = self.body_floor[b]
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in self.rhs:
+            m = self.model.mass[i]
+            g = ti.Vector.zero(float, 3)
+            if ti.static(self.has_gravity):
+                g = dt * m * self.gravity_vector()
+            tets = self.gather(i)
+            rhs = m * v0[i] + g - (1.0 + dt * self.alpha) * m * v[i] - tets
+            self.rhs[i] = rhs
+            b = self.vertex_body[i]
+            self.body_gradient[b] += ti.cast(self.filtered(i, rhs).norm_sqr(), ti.f64)
+            if ti.static(first):   # |M v_n|^2 + |dt f|^2 + |dt M g|^2: not |rhs|^2, which is ~0 at rest
+                self.body_scale[b] += ti.cast(self.filtered(i, m * v0[i]).norm_sqr()
+                                              + self.filtered(i, tets).norm_sqr()
+                                              + self.filtered(i, g).norm_sqr(), ti.f64)
+
+    @ti.kernel
+    def gradient_norm(self, tolerance: ti.f64, first: ti.template()) -> ti.f64:
+        """sum_b |grad_b|^2 / (tol^2 s_b^2): <= 1 exactly when every body has converged."""
+        rho = ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=True)
+        for b in self.body_gradient:
+            if ti.static(first):
+                self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]), float)
+            rho += self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b])
+        return rho
+
+    def gradient(self, v0, x, v, dt, tolerance, first):
+        """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1)."""
+        self.gradient_corners(x, v, dt)
+        self.gradient_vertices(v0, v, dt, first)
+        return self.gradient_norm(tolerance, first)
+
+    @ti.kernel
+    def energy_vertices(self, v0: ti.template(), v: ti.template(), dt: float) -> ti.f64:
+        """1/2 |v - v_n|_M^2 + dt alpha/2 |v|_M^2 - dt v^T M g, summed in float64 (J)."""
+        total = ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in v:
+            m = ti.cast(self.model.mass[i], ti.f64)
+            u, u0 = ti.cast(v[i], ti.f64), ti.cast(v0[i], ti.f64)
+            total += 0.5 * m * ((u - u0).norm_sqr() + dt * self.alpha * u.norm_sqr())
+            if ti.static(self.has_gravity):
+                total -= dt * m * u.dot(ti.cast(self.gravity_vector(), ti.f64))
+        return total
+
+    def energy(self, v0, x, v, dt):
+        """E(v) at x = x_n + dt v (J, float64), with the rotations at x already extracted."""
+        return self.energy_vertices(v0, v, dt) + self.energy_tets(x, v, dt)
+
+    @ti.kernel
+    def slope(self) -> ti.f64:
+        """grad E . d (J): negative when the direction d descends."""
+        total = ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in self.rhs:
+            total -= ti.cast(self.filtered(i, self.rhs[i]).dot(self.solution[i]), ti.f64)
+        return total
+
+    @ti.kernel
+    def try_step(self, x0: ti.template(), x: ti.template(), v: ti.template(), a: float, dt: float):
+        """v <- velocity + a d, x <- x_n + dt v: a point on the Newton direction."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in x:
+            u = self.velocity[i] + a * self.solution[i]
+            v[i] = u
+            x[i] = x0[i] + dt * u
+
+    @ti.kernel
+    def accept(self, v: ti.template()):
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in v:
+            self.velocity[i] = v[i]
+
+    @ti.kernel
+    def start_direction(self, v0: ti.template(), warm: ti.template()):
+        """d <- filtered v_n - v (first Newton iteration: today's velocity is a good guess) or 0."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in self.solution:
+            d = ti.Vector.zero(float, 3)
+            if ti.static(warm):
+                d = self.filtered(i, v0[i] - self.velocity[i])
+            self.solution[i] = d
+
     @ti.kernel
     def build_preconditioner(self, cM: float, cK: float):
-        """block_inverse <- inverse of the 3x3 diagonal blocks of A = cM M + cK K(R)."""
+        """block_inverse <- inverse of the 3x3 diagonal blocks of H = cM M + cK K(R)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.block_inverse:
             # a pinned vertex keeps an identity block, so the inverse exists even where mass is 0
@@ -178,150 +535,113 @@ class ImplicitSolver:
             self.block_inverse[i] = block.inverse()
 
     @ti.kernel
-    def assemble_rhs(self, x: ti.template(), v: ti.template(), dt: float) -> float:
-        """b <- M v + dt (f_elastic + M g); solution <- v (warm start).
-
-        Returns the squared scale the residual is measured against: the sum of the
-        squared sizes of b's three terms. Not |b|^2 itself: for a body resting under
-        gravity the elastic force cancels gravity and |b| -> 0, which would ask the
-        solve for ever more digits of nothing.
-        """
-        scale = 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in self.b:
-            m = self.model.mass[i]
-            f = self.gather(i)
-            g = ti.Vector.zero(float, 3)
-            if ti.static(self.has_gravity):
-                g = m * ti.Vector(self.gravity, dt=float)
-            self.b[i] = m * v[i] + dt * (f + g)    # kept whole: the ground's reaction is read from it
-            self.solution[i] = self.filtered(i, v[i])
-            if ti.static(self.has_ground):
-                if self.contact[i]:   # prescribed: land exactly on the plane this step
-                    self.solution[i][1] = (self.ground - x[i][1]) / dt
-            self.p[i] = ti.Vector.zero(float, 3)
-            scale += (self.filtered(i, m * v[i]).norm_sqr() + dt * dt * self.filtered(i, f).norm_sqr()
-                      + dt * dt * self.filtered(i, g).norm_sqr())
-        self.beta[None] = 0.0
-        return scale
-
-    @ti.kernel
     def start_residual(self, cM: float, cK: float) -> float:
-        """r <- b - A solution, z <- P r, rz <- r.z. Returns |r|^2."""
+        """r <- filtered(rhs) - H d, z <- P r, rz <- r.z (after stiffness_product(d)).
+        Returns the weighted residual sum_i w_b(i) |r_i|^2."""
         rz, rr = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.r:
-            Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
-            r = self.filtered(i, self.b[i] - Ax)
+            r = self.filtered(i, self.rhs[i]) - self.apply_H(i, self.solution, cM, cK)
             z = self.filtered(i, self.block_inverse[i] @ r)
             self.r[i], self.z[i] = r, z
+            self.p[i] = ti.Vector.zero(float, 3)
             rz += r.dot(z)
-            rr += r.dot(r)
+            rr += self.body_weight[self.vertex_body[i]] * r.dot(r)
         self.rz[None] = rz
         self.rr[None] = rr
+        self.cg_beta[None] = 0.0
         self.iterations[None] = 0
         self.active[None] = 1
         return rr
 
     @ti.kernel
-    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template()) -> float:
-        """Up to `unroll` PCG iterations in one launch; returns |r|^2 after the last one done.
+    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template()):
+        """Up to `unroll` PCG iterations in one launch.
 
         Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
-        vertices: x, r, z and r.z, r.r) with the scalar steps between them run
-        serially on the device. Once |r|^2 <= target or `cap` iterations are done,
-        `active` drops to 0 and the remaining passes loop over nothing, so the
+        vertices: d, r, z and r.z, weighted r.r) with the scalar steps between them run
+        serially on the device. Once the weighted |r|^2 <= target or `cap` iterations are
+        done, `active` drops to 0 and the remaining passes loop over nothing, so the
         iteration count is exact while Python launches one kernel per `unroll`.
         """
         n_tets, n = self.model.n_tets, self.model.n_vertices
         for _ in ti.static(range(unroll)):
             on = self.active[None]
+            beta = self.cg_beta[None]
             ti.loop_config(serialize=self.serial_tets)
             for e in range(n_tets * on):
-                self.tet_stiffness(e, self.z, self.p)
+                self.tet_stiffness(e, self.z, self.p, beta)
             pAp = 0.0
-            beta = self.beta[None]
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(n * on):
                 p = self.z[i] + beta * self.p[i]
-                Ap = self.filtered(i, cM * self.model.mass[i] * p + cK * self.gather(i))
-                self.p[i], self.Ap[i] = p, Ap
+                self.p[i] = p
+                Ap = self.apply_H(i, self.p, cM, cK)
+                self.Ap[i] = Ap
                 pAp += p.dot(Ap)
-            alpha = 0.0
+            step = 0.0
             if pAp > 0:
-                alpha = self.rz[None] / pAp
+                step = self.rz[None] / pAp
             rz, rr = 0.0, 0.0
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(n * on):
-                self.solution[i] += alpha * self.p[i]
-                r = self.r[i] - alpha * self.Ap[i]
+                self.solution[i] += step * self.p[i]
+                r = self.r[i] - step * self.Ap[i]
                 z = self.filtered(i, self.block_inverse[i] @ r)
                 self.r[i], self.z[i] = r, z
                 rz += r.dot(z)
-                rr += r.dot(r)
+                rr += self.body_weight[self.vertex_body[i]] * r.dot(r)
             if on:
-                self.beta[None] = 0.0
+                self.cg_beta[None] = 0.0
                 if self.rz[None] > 0:
-                    self.beta[None] = rz / self.rz[None]
+                    self.cg_beta[None] = rz / self.rz[None]
                 self.rz[None] = rz
                 self.rr[None] = rr
                 self.iterations[None] += 1
                 if not (rr > target and self.iterations[None] < cap):
                     self.active[None] = 0
-        return self.rr[None]
 
     @ti.kernel
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
-        """solution += omega P (b - A solution). Returns |b - A solution|^2 before the update."""
+        """d += omega P (rhs - H d) (after stiffness_product(d)). Returns the weighted
+        |rhs - H d|^2 before the update."""
         rr = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.r:
-            Ax = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
-            r = self.filtered(i, self.b[i] - Ax)
+            r = self.filtered(i, self.rhs[i]) - self.apply_H(i, self.solution, cM, cK)
             self.solution[i] += omega * self.filtered(i, self.block_inverse[i] @ r)
-            rr += r.dot(r)
+            rr += self.body_weight[self.vertex_body[i]] * r.dot(r)
         return rr
 
     @ti.kernel
-    def commit(self, x: ti.template(), v: ti.template(), dt: float) -> ti.i32:
-        """v <- solution, x <- x + dt v; keeps a backup. Returns the count of non-finite vertices."""
+    def check_finite(self, x: ti.template(), v: ti.template()) -> ti.i32:
+        """The count of vertices with a non-finite position or velocity."""
         bad = 0
         ti.loop_config(serialize=self.serial_vertices)
         for i in x:
-            self.x_backup[i], self.v_backup[i] = x[i], v[i]
-            v[i] = self.solution[i]
-            x[i] += dt * self.solution[i]
             if not is_finite(x[i].sum() + v[i].sum()):
                 bad += 1
         return bad
 
-    @ti.kernel
-    def restore(self, x: ti.template(), v: ti.template()):
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in x:
-            x[i], v[i] = self.x_backup[i], self.v_backup[i]
+    def ground_reaction(self, cM, cK, newton):
+        """pressed <- vertices in contact that the plane pushes up: the normal component of
+        grad E is positive there (E would fall if they went down). After a Newton step rhs
+        is -grad E at the result; after a single solve the linear model's gradient is
+        -rhs + H d, so K d is formed first."""
+        if not newton:
+            self.stiffness_product(self.solution)
+        self.mark_pressed(cM, cK, newton)
 
     @ti.kernel
-    def detect_contacts(self, x: ti.template(), v: ti.template(), dt: float):
-        """Active set of the ground constraint: a free vertex is in contact when its velocity
-        would take it below the plane this step, or when the plane still pushed it last step.
-        The solve then fixes its normal velocity so that it lands on the plane."""
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in x:
-            self.contact[i] = 0
-            if self.model.free[i] > 0 and (x[i][1] + dt * v[i][1] < self.ground or self.pressed[i]):
-                self.contact[i] = 1
-
-    @ti.kernel
-    def ground_reaction(self, cM: float, cK: float):
-        """pressed <- contact vertices the plane pushes up: (A v - b)_y > 0 (after
-        stiffness_product(solution)); the others may lift off next step."""
+    def mark_pressed(self, cM: float, cK: float, newton: ti.template()):
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.pressed:
             self.pressed[i] = 0
             if self.contact[i]:
-                Av = cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
-                if Av[1] - self.b[i][1] > 0:
+                g = -self.rhs[i]
+                if ti.static(not newton):
+                    g += cM * self.model.mass[i] * self.solution[i] + cK * self.gather(i)
+                if g[1] > 0:
                     self.pressed[i] = 1
 
     @ti.kernel
@@ -340,7 +660,18 @@ class ImplicitSolver:
 
     @ti.kernel
     def matrix_product(self, u: ti.template(), out: ti.template(), cM: float, cK: float):
-        """out <- A u, gathered from `corner` after stiffness_product(u): for tests and checks."""
+        """out <- H u, gathered from `corner` after stiffness_product(u)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in out:
-            out[i] = self.filtered(i, cM * self.model.mass[i] * u[i] + cK * self.gather(i))
+            out[i] = self.apply_H(i, u, cM, cK)
+
+    @ti.kernel
+    def elastic_forces(self, x: ti.template(), out: ti.template()):
+        """out <- f(x), the elastic force on every vertex (N), with the current rotations."""
+        ti.loop_config(serialize=self.serial_tets)
+        for e in self.rotated_Bm:
+            self.store_corners(e, corner_forces(self.elastic_stress(x, e), self.rotated_Bm[e],
+                                                self.model.rest_volume[e]))
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in out:
+            out[i] = self.gather(i)
