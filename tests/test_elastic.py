@@ -7,7 +7,7 @@ import taichi as ti
 from conftest import box_mesh, make_scene
 
 import fem
-from fem.elastic import polar_rotation
+from fem.rotation import polar_rotation
 from fem.mesh import prepare_mesh
 
 
