@@ -123,6 +123,11 @@ class Model:
         return np.array([(relative * (b.mass * b.size / dt + dt * b.material.E * b.size ** 2)) ** 2
                          for b in self.bodies])
 
+    def body_speed_floor(self, relative, dt):
+        """Per body, m (relative L / dt)^2 (J): twice the kinetic energy of the body moving
+        `relative` of its size L in a step. Below it a velocity change is round-off."""
+        return np.array([b.mass * (relative * b.size / dt) ** 2 for b in self.bodies])
+
     @ti.kernel
     def _fill(self, f: ti.template(), start: ti.i32, stop: ti.i32, value: float):
         for e in range(start, stop):

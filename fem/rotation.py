@@ -55,10 +55,15 @@ def polar_rotation(F):
     number of Jacobi sweeps (about 1e-2 rad in f32 and 1e-6 in f64 for a 50:1
     stretch), so Newton steps polish it; where they cannot certify an answer
     (F flat in two directions, or two singular values of an inverted F equal:
-    R is not unique), the SVD's rotation as it is.
+    R is not unique), the SVD's rotation as it is. F is scaled to entries of size 1 first,
+    as R does not depend on its size and the SVD squares it (f32 overflows beyond 1e19).
     """
-    R = svd_rotation(F)
-    q, converged = newton_rotation(F, quaternion_of(R))
+    size = ti.abs(F).max()
+    G = F
+    if size > 0:
+        G = F / size
+    R = svd_rotation(G)
+    q, converged = newton_rotation(G, quaternion_of(R))
     if converged:
         R = quaternion_matrix(q)
     return R
@@ -78,12 +83,16 @@ def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
     stationary point therefore certifies the right one.
 
     Converged: H positive definite and the error left after the last step d below
-    `angle_tolerance()`. Newton converges quadratically, the error after a step
-    being at most about |F| / lambda_min(H) |d|^2; the test uses the cheap bound
-    |F| / lambda_min(H) <= tr(H)^3 / (8 det H), which overestimates the error
-    (by 20 to 100 times, measured). Not converged: H not positive definite at
-    some iterate (a start more than about 90 deg off, where a Newton step heads
-    anywhere), values not finite, or max_iterations steps used up.
+    `angle_tolerance()`. That error is about |F| / lambda_min(H) |d|^3: Newton's
+    error is H^-1 times the second-order remainder of the gradient, which here
+    is proportional to the gradient itself (the skew part of F R^T), so the
+    convergence is cubic, not only quadratic (one turn by theta about the right
+    axis leaves theta^3 / 3). The test bounds |F| / lambda_min(H) by
+    tr(H)^3 / (8 det H); measured over random F (stretches to 1000:1, inverted
+    F, starts up to 1.5 rad off), the true error stays below 0.1 of the estimate.
+    Not converged: H not positive definite at some iterate (a start more than
+    about 90 deg off, where a Newton step heads anywhere), values not finite,
+    or max_iterations steps used up.
     """
     converged = False
     for _ in range(max_iterations):
@@ -106,7 +115,8 @@ def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
             p[3] * q[2] + p[0] * q[1] - p[1] * q[0] + p[2] * q[3],
             p[3] * q[3] - p[0] * q[0] - p[1] * q[1] - p[2] * q[2],
         ]).normalized()
-        if H.trace() ** 3 / (8.0 * det_H) * d.norm_sqr() < ti.static(angle_tolerance()):
+        d2 = d.norm_sqr()
+        if H.trace() ** 3 / (8.0 * det_H) * d2 * ti.sqrt(d2) < ti.static(angle_tolerance()):
             converged = True
             break
     return q, converged

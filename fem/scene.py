@@ -102,6 +102,7 @@ class SolverSettings:
     dt: float = 0.02                    # s
     step: str = "newton"                # "newton": minimise the incremental potential | "single": one solve
     max_newton: int = 20                # Newton iterations per step at most
+    newton_tolerance: float = 1e-3      # per body: stop when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration
     tolerance: float = 1e-4             # per body: |grad E| / (size of the step's own terms)
     max_iterations: int = 200           # linear solver iterations per Newton iteration
@@ -113,6 +114,8 @@ class SolverSettings:
             raise FemError(f"{where}: dt must be > 0, got {self.dt}")
         if self.step not in STEPS:
             raise FemError(f"{where}: step must be one of {STEPS}, got {self.step!r}")
+        if not self.newton_tolerance > 0:
+            raise FemError(f"{where}: newton_tolerance must be > 0, got {self.newton_tolerance}")
         if not self.max_newton >= 1:
             raise FemError(f"{where}: max_newton must be >= 1, got {self.max_newton}")
         if self.method not in SOLVERS:
@@ -374,7 +377,7 @@ def read_toml_scene(path, overrides=()):
         path=str(path),
         bodies=bodies,
         effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
-        solver=read_solver(top.table("solver", ["dt", "step", "max_newton", "method", "tolerance",
+        solver=read_solver(top.table("solver", ["dt", "step", "max_newton", "newton_tolerance", "method", "tolerance",
                                                  "max_iterations", "jacobi_omega", "rotations"])),
     )
     scene.solver.check(f"{path}: solver")
@@ -549,6 +552,7 @@ def read_solver(t):
     s.dt = t.get("dt", "float", s.dt)
     s.step = t.get("step", "str", s.step)
     s.max_newton = t.get("max_newton", "int", s.max_newton)
+    s.newton_tolerance = t.get("newton_tolerance", "float", s.newton_tolerance)
     s.method = t.get("method", "str", s.method)
     s.tolerance = t.get("tolerance", "float", s.tolerance)
     s.max_iterations = t.get("max_iterations", "int", s.max_iterations)

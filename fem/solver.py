@@ -49,6 +49,17 @@ ROUNDOFF = 30.0          # per-body floor of the stopping test, in units of the 
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
 
 
+@ti.func
+def twist_stiffness(trace_S, mu, lam):
+    """lam_t = max(0, (psi_i + psi_j) / (s_i + s_j)) with every s_i = tr S / 3 (Pa), where
+    psi_i = 2 mu (s_i - 1) + lam (tr S - 3): the twist curvature of the corotated energy."""
+    pair = 2.0 * trace_S / 3.0
+    lam_t = 0.0
+    if pair > 0:
+        lam_t = ti.max(0.0, (2.0 * mu * (pair - 2.0) + 2.0 * lam * (trace_S - 3.0)) / pair)
+    return lam_t
+
+
 @dataclass
 class StepInfo:
     """What one implicit step did.
@@ -59,6 +70,8 @@ class StepInfo:
     newton_iters: Newton iterations (1 for a single step or an all-linear scene).
     solver_iters: CG or Jacobi iterations summed over the Newton iterations.
     line_search_steps: step halvings summed over the Newton iterations.
+    energy_limited: bodies whose total energy the step would have raised, so that their
+        velocities relative to their centre of mass were scaled back to the energy they had.
     rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
     """
 
@@ -68,6 +81,7 @@ class StepInfo:
     newton_iters: int
     solver_iters: int
     line_search_steps: int
+    energy_limited: int
     rotation_ms: float
     solve_ms: float
 
@@ -96,6 +110,7 @@ class ImplicitSolver:
         self.rotated_Bm = ti.Matrix.field(3, 3, float, m)     # Bm R^T at the current iterate
         self.damping_Bm = ti.Matrix.field(3, 3, float, m if self.has_stiffness_damping else 1)  # Bm R_n^T
         self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
+        self.twist = ti.field(float, m)                       # twist stiffness of the Newton matrix, Pa
         self.corner = vec(4 * m)                              # per-corner values before the gather
         self.velocity = vec(n)                                # v of the accepted Newton iterate, m/s
         self.rhs = vec(n)                                     # -grad E at that iterate (unfiltered), N s
@@ -109,6 +124,16 @@ class ImplicitSolver:
         self.body_scale = ti.field(ti.f64, nb)                # (N s)^2: s_b^2 of this step
         self.body_weight = ti.field(float, nb)                # 1 / (tol^2 s_b^2)
         self.body_gradient = ti.field(ti.f64, nb)             # |grad_b E|^2
+        self.body_change = ti.field(ti.f64, nb)               # |a d_b|_M^2 of the last Newton iteration, J
+        self.body_momentum = ti.field(ti.f64, nb)             # |v_b|_M^2, J
+        self.body_speed_floor = ti.field(ti.f64, nb)          # round-off floor of |v_b|_M^2, J
+        self.energy_before = ti.field(ti.f64, nb)             # total energy of each body before the step, J
+        self.energy_after = ti.field(ti.f64, nb)              # ... and after it, J
+        self.body_mass = ti.field(ti.f64, nb)                 # kg (free vertices only)
+        self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)   # kg m/s
+        self.body_pinned = ti.field(ti.i32, nb)               # 1: the body has pinned vertices
+        self.body_pinned.from_numpy(np.array([int((model.free.to_numpy()[b.vertices] == 0).any())
+                                              for b in model.bodies], np.int32))
         self.rz = ti.field(float, ())                         # PCG scalars stay on the device
         self.rr = ti.field(float, ())
         self.cg_beta = ti.field(float, ())
@@ -146,8 +171,10 @@ class ImplicitSolver:
         cM, cK = self.coefficients(dt)
         self.refresh(cM, cK, dt)
 
+        rotation_ms = self.update_rotations(state_in.x, corotational)   # R(x_n)
+        if newton:
+            self.body_energy(state_in.x, state_in.v, self.energy_before)
         self.start_iterate(state_in.x, state_in.v, state_out.x, state_out.v, dt)
-        rotation_ms = self.update_rotations(state_out.x, corotational)
         if self.has_stiffness_damping:
             self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
         if corotational or self.preconditioner_key != (cM, cK):
@@ -157,6 +184,7 @@ class ImplicitSolver:
         energy = self.energy(state_in.v, state_out.x, state_out.v, dt) if newton else 0.0
 
         newton_iters = solver_iters = halvings = 0
+        settled = False
         while rho > 1.0 and newton_iters < (settings.max_newton if newton else 1):
             target = 1.0 if not newton else max(1.0, FORCING ** 2 * rho)
             solver_iters += self.solve(state_in.v, cM, cK, target, warm=newton_iters == 0)
@@ -178,23 +206,32 @@ class ImplicitSolver:
                 halvings += 1
             if not accepted:                                  # no decrease left at this precision
                 self.try_step(state_in.x, state_out.x, state_out.v, 0.0, dt)
+                rotation_ms += self.update_rotations(state_out.x, True)
                 break
             energy = trial
             self.accept(state_out.v)
+            change = self.velocity_change(a, settings.newton_tolerance)
             rho = self.gradient(state_in.v, state_out.x, state_out.v, dt, settings.tolerance, False)
+            if change <= 1.0:                                 # every body's velocity has settled
+                settled = True
+                break
 
         if self.has_ground:
             self.ground_reaction(cM, cK, newton)
         bad = self.check_finite(state_out.x, state_out.v)
         if bad == 0 and self.has_ground:
             self.ground_contact(state_out.x, state_out.v)
+        limited = 0
+        if bad == 0 and newton:
+            self.body_energy(state_out.x, state_out.v, self.energy_after)
+            limited = self.limit_energy(state_in.x, state_out.x, state_out.v)
         ti.sync()
         residual = settings.tolerance * math.sqrt(max(rho, 0.0))
         wall_ms = 1e3 * (time.perf_counter() - start)
-        return StepInfo(finite=bad == 0, converged=bool(rho <= 1.0),
+        return StepInfo(finite=bad == 0, converged=bool(rho <= 1.0 or settled),
                         residual=residual if math.isfinite(residual) else None,
                         newton_iters=max(newton_iters, 1), solver_iters=solver_iters,
-                        line_search_steps=halvings, rotation_ms=rotation_ms,
+                        line_search_steps=halvings, energy_limited=limited, rotation_ms=rotation_ms,
                         solve_ms=wall_ms - rotation_ms)
 
     def refresh(self, cM, cK, dt):
@@ -203,6 +240,7 @@ class ImplicitSolver:
             self.model_version = (self.model.version, dt)
             self.preconditioner_key = self.omega_key = None
             self.body_floor.from_numpy(self.model.body_floor(ROUNDOFF * epsilon(), dt))
+            self.body_speed_floor.from_numpy(self.model.body_speed_floor(ROUNDOFF * epsilon(), dt))
             if not self.model.any_corotational and self.rotated:
                 self.reset_rotations()                        # every body switched to linear: unrotate
                 self.rotated = False
@@ -214,7 +252,7 @@ class ImplicitSolver:
         if not corotational:
             return 0.0
         start = time.perf_counter()
-        self.extract_rotations(x, self.settings.rotations == "svd")
+        self.extract_rotations(x, self.settings.rotations == "svd", int(self.settings.step == "newton"))
         self.rotated = True
         ti.sync()
         return 1e3 * (time.perf_counter() - start)
@@ -273,6 +311,7 @@ class ImplicitSolver:
         for e in self.rotated_Bm:
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
             self.rotated_Bm[e] = self.model.Bm[e]
+            self.twist[e] = 0.0
 
     @ti.func
     def edges(self, x: ti.template(), e):
@@ -281,11 +320,12 @@ class ImplicitSolver:
         return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]])
 
     @ti.kernel
-    def extract_rotations(self, x: ti.template(), svd: ti.template()):
+    def extract_rotations(self, x: ti.template(), svd: ti.template(), newton: ti.i32):
         """R = polar rotation of F for every corotational tet, kept as rotated_Bm = Bm R^T.
 
         svd=False: warm-started iteration from last time's R, falling back to the SVD where it
         does not converge or the tet is inverted; svd=True: the SVD for every tet (the reference).
+        newton=1 also sets each tet's twist stiffness (below); 0 leaves it 0 (the one-solve step).
         """
         ti.loop_config(serialize=self.serial_tets)
         for e in self.rotated_Bm:
@@ -299,9 +339,20 @@ class ImplicitSolver:
                     R, q = rotation_of(F, q)
                 self.quaternions[e] = q
                 self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
+                self.twist[e] = newton * twist_stiffness((R.transpose() @ F).trace(), self.model.mu[e],
+                                                         self.model.lam[e])
             else:
+                self.twist[e] = 0.0
                 self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
                 self.rotated_Bm[e] = self.model.Bm[e]
+
+    # The Newton matrix R Ke R^T misses the curvature of Psi when a tet turns: the "twist"
+    # modes (skew parts of R^T dF) get none, where the exact Hessian of the corotated energy
+    # gives (psi_i + psi_j) / (s_i + s_j) for singular values s_i, s_j (Smith et al. 2019,
+    # "Analytic eigensystems for isotropic distortion energies"): positive in a stretched
+    # tet, and for a near-incompressible one far larger than mu. Without it Newton overshoots
+    # and the line search halves every step; `twist` adds it, projected to >= 0 and with all
+    # s_i taken equal to their mean (tr S / 3), as lam_t |skew(R^T dF)|^2.
 
     @ti.kernel
     def freeze_damping_frame(self):
@@ -325,8 +376,8 @@ class ImplicitSolver:
         B = self.rotated_Bm[e]
         dF = edge_matrix(d0, d1, d2, d3) @ B
         eps = 0.5 * (dF + dF.transpose())
-        self.store_corners(e, corner_forces(-linear_stress(eps, self.model.mu[e], self.model.lam[e]),
-                                            B, self.model.rest_volume[e]))
+        P = linear_stress(eps, self.model.mu[e], self.model.lam[e]) + self.twist[e] * (dF - eps)
+        self.store_corners(e, corner_forces(-P, B, self.model.rest_volume[e]))
 
     @ti.kernel
     def stiffness_product(self, u: ti.template()):
@@ -484,6 +535,107 @@ class ImplicitSolver:
         return self.energy_vertices(v0, v, dt) + self.energy_tets(x, v, dt)
 
     @ti.kernel
+    def velocity_change(self, a: float, tolerance: ti.f64) -> ti.f64:
+        """sum_b |a d_b|_M^2 / (tol^2 (|v_b|_M^2 + floor_b)): <= 1 exactly when no body's velocity
+        moved by more than tol of its size in the last Newton iteration."""
+        for b in self.body_change:
+            self.body_change[b], self.body_momentum[b] = 0.0, 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in self.velocity:
+            m = ti.cast(self.model.mass[i], ti.f64)
+            b = self.vertex_body[i]
+            self.body_change[b] += m * ti.cast(a * self.solution[i], ti.f64).norm_sqr()
+            self.body_momentum[b] += m * ti.cast(self.velocity[i], ti.f64).norm_sqr()
+        change = ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=True)
+        for b in self.body_change:
+            change += self.body_change[b] / (tolerance * tolerance * (self.body_momentum[b] + self.body_speed_floor[b]))
+        return change
+
+    # Backward Euler with a non-convex energy (corotated elasticity is not convex: a compressed
+    # tet's twist curvature is negative) can end a step with more energy than it began,
+    # even when solved exactly: thin, bending or buckling bodies do. The promise that total
+    # energy never rises is kept by a last safeguard: a body whose kinetic + elastic +
+    # gravitational energy rose has its velocities relative to its centre of mass scaled
+    # down by just enough (positions and linear momentum untouched); a body whose rise is
+    # more than that motion holds (nearly at rest) keeps its old positions, at rest.
+    # StepInfo counts both.
+
+    @ti.kernel
+    def body_energy(self, x: ti.template(), v: ti.template(), out: ti.template()):
+        """out[b] <- kinetic + elastic + gravitational energy of body b (J, float64),
+        elastic with the rotations extracted at x."""
+        for b in out:
+            out[b] = 0.0
+        ti.loop_config(serialize=self.serial_tets)
+        for e in self.rotated_Bm:
+            F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
+            out[self.model_tet_body(e)] += ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
+                F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in x:
+            m = ti.cast(self.model.mass[i], ti.f64)
+            energy = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr()
+            if ti.static(self.has_gravity):
+                energy -= m * ti.cast(self.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
+            out[self.vertex_body[i]] += energy
+
+    @ti.func
+    def model_tet_body(self, e):
+        return self.vertex_body[self.model.tets[e][0]]
+
+    @ti.kernel
+    def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template()) -> ti.i32:
+        """Scale v - v_cm of every body whose energy rose (v_cm = 0 for pinned bodies) so that
+        its kinetic energy falls by the rise. Where the rise exceeds that kinetic energy (a body
+        nearly at rest in a non-convex state), the body stays where it was, at rest.
+        Returns how many bodies were limited."""
+        for b in self.body_mass:
+            self.body_mass[b] = 0.0
+            self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
+            self.body_change[b] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in v:
+            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+            b = self.vertex_body[i]
+            self.body_mass[b] += m
+            self.body_momentum_vector[b] += m * ti.cast(v[i], ti.f64)
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in v:     # kinetic energy of the motion relative to the centre of mass
+            b = self.vertex_body[i]
+            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+            u = ti.cast(v[i], ti.f64) - self.centre_velocity(b)
+            self.body_change[b] += 0.5 * m * u.norm_sqr()
+        limited = 0
+        ti.loop_config(serialize=True)
+        for b in self.body_change:
+            rise = self.energy_after[b] - self.energy_before[b]
+            scale = ti.cast(1.0, ti.f64)
+            if rise > 0:
+                limited += 1
+                if self.body_change[b] > rise:
+                    scale = ti.sqrt(1.0 - rise / self.body_change[b])
+                else:
+                    scale = -1.0                 # cannot be absorbed: keep x_n, at rest
+            self.body_change[b] = scale          # reused: the factor per body
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in v:
+            b = self.vertex_body[i]
+            if self.body_change[b] < 0.0:
+                x[i], v[i] = x0[i], ti.Vector.zero(float, 3)
+            elif self.body_change[b] < 1.0:
+                c = self.centre_velocity(b)
+                v[i] = ti.cast((c + self.body_change[b] * (ti.cast(v[i], ti.f64) - c)) * self.model.free[i], float)
+        return limited
+
+    @ti.func
+    def centre_velocity(self, b):
+        c = ti.Vector.zero(ti.f64, 3)
+        if self.body_pinned[b] == 0 and self.body_mass[b] > 0:
+            c = self.body_momentum_vector[b] / self.body_mass[b]
+        return c
+
+    @ti.kernel
     def slope(self) -> ti.f64:
         """grad E . d (J): negative when the direction d descends."""
         total = ti.cast(0.0, ti.f64)
@@ -531,7 +683,10 @@ class ImplicitSolver:
                 h = -(B[0, :] + B[1, :] + B[2, :])       # rotated shape gradient of corner k
                 if k < 3:
                     h = B[k, :]
-                block += cK * stiffness_block(h, self.model.rest_volume[e], self.model.mu[e], self.model.lam[e])
+                W = self.model.rest_volume[e]
+                block += cK * (stiffness_block(h, W, self.model.mu[e], self.model.lam[e])
+                               + 0.5 * W * self.twist[e] * (h.dot(h) * ti.Matrix.identity(float, 3)
+                                                            - h.outer_product(h)))
             self.block_inverse[i] = block.inverse()
 
     @ti.kernel
