@@ -6,10 +6,11 @@ al. 2004 (the SVD's U V^T with the column of the smallest singular value flipped
 
 `rotation_of(F, q)` is the routine the solver uses every step: Newton steps on
 tr(R^T F) (Mueller et al. 2016 with the exact Hessian) from the previous step's
-rotation q, one or two of them from a warm start, far cheaper than an SVD. The
-iteration is trusted only when it certifies its own answer; otherwise R comes
-from `polar_rotation(F)`, which needs no start: the SVD, polished by the same
-Newton steps. Either way the quaternion of the returned R is the next warm start.
+rotation q; from a warm start two of them in f32, two or three in f64, about a
+sixth of the cost of an SVD (tools/rotation_cost.py). The iteration is trusted
+only when it certifies its own answer; otherwise R comes from
+`polar_rotation(F)`, which needs no start: the SVD, polished by the same Newton
+steps. Either way the quaternion of the returned R is the next warm start.
 
 Quaternions are (x, y, z, w), w the scalar part.
 """
@@ -18,8 +19,8 @@ import taichi as ti
 
 from fem.elastic import is_finite
 
-# Newton steps per start. A start that needs more is far off (tens of degrees):
-# the SVD costs less than further steps would.
+# Newton steps per start. A start that needs more is about a radian off or more
+# (tools/rotation_cost.py): the SVD costs less than further steps would.
 NEWTON_ITERATIONS = 4
 
 
@@ -28,7 +29,7 @@ def angle_tolerance():
 
     Read on the Python side when a kernel compiles, after Taichi's float type is fixed.
     """
-    return 1e-5 if ti.lang.impl.get_runtime().default_fp == ti.f32 else 1e-10
+    return 1e-5 if ti.lang.impl.get_runtime().default_fp == ti.f32 else 1e-12
 
 
 @ti.func
@@ -52,11 +53,12 @@ def polar_rotation(F):
     """The rotation of F without a start (det R = +1), also for inverted, flat or non-finite F.
 
     The SVD's rotation (`svd_rotation`) is global but only as accurate as its fixed
-    number of Jacobi sweeps (about 1e-2 rad in f32 and 1e-6 in f64 for a 50:1
-    stretch), so Newton steps polish it; where they cannot certify an answer
-    (F flat in two directions, or two singular values of an inverted F equal:
-    R is not unique), the SVD's rotation as it is. F is scaled to entries of size 1 first,
-    as R does not depend on its size and the SVD squares it (f32 overflows beyond 1e19).
+    number of Jacobi sweeps (measured up to 2e-2 rad in f32 and 3e-6 in f64 for a
+    50:1 stretch), so Newton steps polish it; where they cannot certify an answer
+    (F flat in two directions, or two singular values of an inverted F nearly
+    equal: R barely defined), the SVD's rotation as it is. F is scaled to entries
+    of size 1 first: R does not depend on its size, and the SVD squares it (in
+    f32, F^T F overflows beyond 1e19).
     """
     size = ti.abs(F).max()
     G = F
