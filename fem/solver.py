@@ -139,6 +139,7 @@ class ImplicitSolver:
         self.cg_beta = ti.field(float, ())
         self.iterations = ti.field(ti.i32, ())
         self.active = ti.field(ti.i32, ())                    # 1 while PCG iterates
+        self.dt = ti.field(float, ())                         # s, of the step under way
         self.vertex_body.from_numpy(model.vertex_body)
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioner_key = None
@@ -170,6 +171,7 @@ class ImplicitSolver:
         newton = settings.step == "newton" and corotational   # linear: one Newton iteration is exact
         cM, cK = self.coefficients(dt)
         self.refresh(cM, cK, dt)
+        self.dt[None] = dt
 
         rotation_ms = self.update_rotations(state_in.x, corotational)   # R(x_n)
         if newton:
@@ -223,6 +225,8 @@ class ImplicitSolver:
             self.ground_contact(state_out.x, state_out.v)
         limited = 0
         if bad == 0 and newton:
+            if not self.has_ground:
+                self.restore_momentum(state_in.v, state_in.x, state_out.x, state_out.v, dt)
             self.body_energy(state_out.x, state_out.v, self.energy_after)
             limited = self.limit_energy(state_in.x, state_out.x, state_out.v)
         ti.sync()
@@ -622,11 +626,39 @@ class ImplicitSolver:
         for i in v:
             b = self.vertex_body[i]
             if self.body_change[b] < 0.0:
-                x[i], v[i] = x0[i], ti.Vector.zero(float, 3)
+                c = ti.cast(self.centre_velocity(b), float) * self.model.free[i]
+                x[i], v[i] = x0[i] + self.dt[None] * c, c
             elif self.body_change[b] < 1.0:
                 c = self.centre_velocity(b)
                 v[i] = ti.cast((c + self.body_change[b] * (ti.cast(v[i], ti.f64) - c)) * self.model.free[i], float)
         return limited
+
+    @ti.kernel
+    def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(),
+                         dt: float):
+        """Shift each unpinned body's velocity uniformly so that its momentum is exactly backward
+        Euler's, (1 + dt alpha) sum m v = sum m v_n + dt M g: an inexact Newton solve leaves a
+        residual whose sum is not zero, and internal forces can never change momentum."""
+        for b in self.body_mass:
+            self.body_mass[b] = 0.0
+            self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in v:
+            m = ti.cast(self.model.mass[i], ti.f64)
+            b = self.vertex_body[i]
+            g = ti.Vector.zero(ti.f64, 3)
+            if ti.static(self.has_gravity):
+                g = dt * ti.cast(self.gravity_vector(), ti.f64)
+            self.body_mass[b] += m
+            self.body_momentum_vector[b] += m * ((ti.cast(v0[i], ti.f64) + g) / (1.0 + dt * self.alpha)
+                                                 - ti.cast(v[i], ti.f64))
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in v:
+            b = self.vertex_body[i]
+            if self.body_pinned[b] == 0 and self.body_mass[b] > 0:
+                u = ti.cast(self.body_momentum_vector[b] / self.body_mass[b], float)
+                v[i] += u
+                x[i] = x0[i] + dt * v[i]
 
     @ti.func
     def centre_velocity(self, b):

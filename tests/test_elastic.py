@@ -31,14 +31,14 @@ def reference_Ke(X, E, nu):
     return W * B.T @ C @ B
 
 
-def stiffness_from_operator(sim):
-    """K extracted column by column from the matrix-free product (cM = 0, cK = 1)."""
+def stiffness_from_operator(sim, x=None):
+    """K extracted column by column from the matrix-free product (cM = 0, cK = 1) at positions x."""
     n = sim.model.n_vertices
     K = np.zeros((3 * n, 3 * n))
     for j in range(3 * n):
         u = np.zeros((n, 3))
         u.flat[j] = 1.0
-        K[:, j] = sim.apply_matrix(u, 0.0, 1.0).ravel()
+        K[:, j] = sim.apply_matrix(u, 0.0, 1.0, x=x).ravel()
     return K
 
 
@@ -62,24 +62,23 @@ def test_corotational_stiffness_is_rotated_Ke(f64, svd):
     sim = fem.Simulation(make_scene(mesh, "corotational", E=1e5, nu=0.3))
     angle = 0.7
     R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
-    sim.state.x.from_numpy(mesh.vertices @ R.T + [0.3, -0.2, 0.5])
-    sim.solver.extract_rotations(sim.state.x, svd)
-    np.testing.assert_allclose(sim.solver.rotations.to_numpy()[0], R, atol=1e-9)
+    sim.settings.rotations = "svd" if svd else "iterative"
+    x = mesh.vertices @ R.T + [0.3, -0.2, 0.5]
+    np.testing.assert_allclose(sim.rotations(x)[0], R, atol=1e-9)
     Rb = np.kron(np.eye(4), R)
-    np.testing.assert_allclose(stiffness_from_operator(sim), Rb @ reference_Ke(mesh.vertices, 1e5, 0.3) @ Rb.T,
+    np.testing.assert_allclose(stiffness_from_operator(sim, x), Rb @ reference_Ke(mesh.vertices, 1e5, 0.3) @ Rb.T,
                                atol=1e-6 * 1e5)
-    sim.solver.elastic_forces(sim.state.x)
-    assert np.abs(sim.solver.corner.to_numpy()).max() < 1e-6   # a rigid motion costs no force
+    assert np.abs(sim.forces(x)).max() < 1e-6   # a rigid motion costs no force
 
 
-def assembled_matrix(sim, cM, cK):
-    """A = cM M + cK sum_e R Ke R^T assembled with scipy from numpy references."""
+def assembled_matrix(sim, cM, cK, x):
+    """A = cM M + cK sum_e R Ke R^T assembled with scipy from numpy references (R: exact polar of F)."""
     m = sim.model
     n = m.n_vertices
     rows, cols, vals = [], [], []
-    R_all = sim.solver.rotations.to_numpy()
+    R_all = exact_rotations(m, x) if m.any_corotational else np.tile(np.eye(3), (m.n_tets, 1, 1))
     for e, tet in enumerate(m.tets_np):
-        b = m.scene.bodies[0].material
+        b = m.bodies[0].material
         Rb = np.kron(np.eye(4), R_all[e])
         Ke = Rb @ reference_Ke(m.rest_positions_np[tet], b.E, b.nu) @ Rb.T
         dofs = (3 * tet[:, None] + np.arange(3)).ravel()
@@ -91,19 +90,26 @@ def assembled_matrix(sim, cM, cK):
     return cM * M + cK * K
 
 
+def exact_rotations(model, x):
+    """Polar rotations of every tet's F by numpy's SVD (all tets proper here)."""
+    X, T = model.rest_positions_np, model.tets_np
+    Dm = np.stack([X[T[:, k]] - X[T[:, 3]] for k in range(3)], axis=2)
+    Ds = np.stack([x[T[:, k]] - x[T[:, 3]] for k in range(3)], axis=2)
+    U, _, Vt = np.linalg.svd(Ds @ np.linalg.inv(Dm))
+    return U @ Vt
+
+
 @pytest.mark.parametrize("method", ["linear", "corotational"])
 def test_matrix_free_product_equals_assembled_matrix(f64, method):
     mesh = box_mesh(3)
     sim = fem.Simulation(make_scene(mesh, method, E=5e4, nu=0.4))
     rng = np.random.default_rng(1)
     x = mesh.vertices @ np.linalg.qr(rng.standard_normal((3, 3)))[0].T + 0.05 * rng.standard_normal(mesh.vertices.shape)
-    sim.state.x.from_numpy(x)
-    if method == "corotational":
-        sim.solver.extract_rotations(sim.state.x, False)
+    sim.settings.step = "single"          # the Newton matrix without its twist term: exactly R Ke R^T
     cM, cK = 1.1, 2e-3
-    A = assembled_matrix(sim, cM, cK)
+    A = assembled_matrix(sim, cM, cK, x)
     u = rng.standard_normal((sim.model.n_vertices, 3))
-    Au = sim.apply_matrix(u, cM, cK)
+    Au = sim.apply_matrix(u, cM, cK, x=x)
     np.testing.assert_allclose(Au.ravel(), A @ u.ravel(), rtol=0, atol=1e-9 * np.abs(A @ u.ravel()).max())
 
 
@@ -116,11 +122,7 @@ def test_patch_test_affine_deformation(f64):
     E, nu = 1e4, 0.3
     sim = fem.Simulation(make_scene(mesh, "linear", E=E, nu=nu))
     G = np.array([[0.01, 0.004, 0.0], [0.002, -0.005, 0.003], [0.0, 0.001, 0.008]])   # displacement gradient
-    sim.state.x.from_numpy(mesh.vertices @ (np.eye(3) + G).T)
-    sim.state.v.from_numpy(np.zeros_like(mesh.vertices))
-    sim.solver.elastic_forces(sim.state.x)
-    sim.solver.assemble_rhs(sim.state.x, sim.state.v, 1.0)      # b = M 0 + 1 * f_elastic
-    force = sim.solver.b.to_numpy()
+    force = sim.forces(mesh.vertices @ (np.eye(3) + G).T)
 
     interior = np.all(np.abs(mesh.vertices) < 0.49, axis=1)
     assert interior.sum() == 8
@@ -174,11 +176,11 @@ def test_iterative_rotations_match_the_svd(f64):
     Q *= np.sign(np.linalg.det(Q))
     x = mesh.vertices @ Q.T + 0.08 * rng.standard_normal(mesh.vertices.shape)
     x[0] = x[1] + (x[1] - x[0]) * 3          # turn some tets inside out
-    sim.state.x.from_numpy(x)
-    sim.solver.extract_rotations(sim.state.x, True)
-    exact = sim.solver.rotations.to_numpy()
-    for _ in range(3):                       # three warm-started steps from the identity
-        sim.solver.extract_rotations(sim.state.x, False)
-    iterative = sim.solver.rotations.to_numpy()
+    sim.settings.rotations = "svd"
+    exact = sim.rotations(x)
+    sim.solver.reset()                       # cold start: identity quaternions
+    sim.settings.rotations = "iterative"
+    for _ in range(3):                       # three warm-started extractions from the identity
+        iterative = sim.rotations(x)
     np.testing.assert_allclose(iterative, exact, atol=1e-6)
     assert np.allclose(np.linalg.det(iterative), 1.0)

@@ -34,23 +34,25 @@ def test_momentum_is_conserved_without_effects(f64, method):
         sim.step()
     scale = np.abs(sim.model.mass_np).sum() * 4.0
     np.testing.assert_allclose(momentum(sim), p0, atol=1e-9 * scale)
-    if method == "corotational":   # angular momentum up to solver tolerance and backward Euler's dissipation
-        np.testing.assert_allclose(angular_momentum(sim), L0, atol=0.01 * np.linalg.norm(L0))
+    if method == "corotational":
+        # backward Euler does not conserve angular momentum: L' - L = -dt^2 sum v' x f(x'); it
+        # only loses some (here ~4 % in 30 steps; the one-solve step's linearisation ~1 %)
+        L = angular_momentum(sim)
+        assert np.linalg.norm(L) <= np.linalg.norm(L0)
+        np.testing.assert_allclose(L, L0, atol=0.05 * np.linalg.norm(L0))
 
 
 @pytest.mark.parametrize("method", ["linear", "corotational"])
-def test_energy_never_rises_with_damping(f64, method):
+def test_total_energy_never_rises_with_damping(f64, method):
     scene = make_scene(box_mesh(3), method, E=1e4, nu=0.3, density=100.0,
                        effects=Effects(alpha=0.1, beta=0.01))
     scene.initial = [Initial(Selection(None), "twist_shape", (np.array([1.0, 0, 0]), np.radians(60))),
                      Initial(Selection(None), "spin", (np.array([0.0, 0, 1.0]), 2.0))]
     sim = fem.Simulation(scene)
-    s = sim.stats()
-    energies = [s["kinetic_energy"] + s["elastic_energy"]]
+    energies = [sim.stats()["total_energy"]]
     for _ in range(60):
         sim.step()
-        s = sim.stats()
-        energies.append(s["kinetic_energy"] + s["elastic_energy"])
+        energies.append(sim.stats()["total_energy"])
     energies = np.array(energies)
     assert energies[-1] < 0.5 * energies[0]
     assert np.all(np.diff(energies) <= 1e-6 * energies[0])
@@ -70,26 +72,24 @@ def test_rigid_spin_keeps_volume_under_corotation_and_inflates_linear(f64):
 
 
 def test_pcg_reaches_tolerance_and_reports_iterations(f64):
-    scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-8, max_iterations=400))
+    """A single step solves H v' = M v + dt f(x) to the tolerance it reports (no gravity, no damping)."""
+    scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-8, max_iterations=400,
+                                                           step="single"))
     scene.initial.append(Initial(Selection(None), "stretch", (np.array([1.0, 0, 0]), 1.3)))
     sim = fem.Simulation(scene)
-    v_before = sim.velocities()
-    sim.step()
-    s = sim.solver
-    b = s.b.to_numpy()
-    v_new = sim.velocities()
-    cM, cK = sim.coefficients
-    momentum = sim.model.mass_np[:, None] * v_before
-    scale = np.sqrt(np.sum(momentum ** 2) + np.sum((b - momentum) ** 2))   # |M v|, |dt f| (no gravity)
-    true_residual = np.linalg.norm(b - sim.apply_matrix(v_new, cM, cK)) / scale
-    info = sim.last
-    assert info["converged"] and 0 < info["solver_iters"] < 400
+    x, v = sim.positions(), sim.velocities()
+    momentum, impulse = sim.model.mass_np[:, None] * v, 0.02 * sim.forces(x)
+    info = sim.step()
+    residual = momentum + impulse - sim.apply_matrix(sim.velocities(), x=x)
+    true_residual = np.linalg.norm(residual) / np.sqrt(np.sum(momentum ** 2) + np.sum(impulse ** 2))
+    assert info["converged"] and 0 < info["solver_iters"] < 400 and info["newton_iters"] == 1
     assert info["residual"] <= 1e-8
     assert true_residual == pytest.approx(info["residual"], rel=1e-3, abs=1e-12)
 
 
 def test_iteration_cap_is_reported_not_hidden(f64):
-    scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-12, max_iterations=3))
+    scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-12, max_iterations=3,
+                                                           step="single"))
     scene.initial.append(Initial(Selection(None), "stretch", (np.array([1.0, 0, 0]), 1.3)))
     info = fem.Simulation(scene).step()
     assert info["solver_iters"] == 3 and not info["converged"] and info["residual"] > 1e-12
@@ -99,7 +99,7 @@ def test_jacobi_converges_to_the_pcg_solution(f64):
     solutions = {}
     for solver in ("pcg", "jacobi"):
         scene = spinning("corotational", solver=SolverSettings(dt=0.01, method=solver, tolerance=1e-9,
-                                                               max_iterations=5000))
+                                                               max_iterations=5000, newton_tolerance=1e-9))
         scene.initial.append(Initial(Selection(None), "stretch", (np.array([1.0, 0, 0]), 1.3)))
         sim = fem.Simulation(scene)
         info = sim.step()
@@ -141,8 +141,8 @@ def launches_per_step(scene, steps=5):
     ti.profiler.clear_kernel_profiler_info()
     for _ in range(steps):
         sim.step()
-    names = ["extract_rotations", "build_preconditioner", "ground_contact", "elastic_forces",
-             "stiffness_product", "commit"]
+    names = ["extract_rotations", "build_preconditioner", "ground_contact", "gradient_corners",
+             "energy_tets", "start_iterate"]
     counts = {n: ti.profiler.query_kernel_profiler_info(n).counter for n in names}
     fem.init("cpu", "f64")
     return counts
@@ -154,10 +154,11 @@ def test_switched_off_effects_launch_no_work():
     assert linear["extract_rotations"] == 0            # no corotational body: no rotation ever
     assert linear["build_preconditioner"] == 0         # linear: built once, in the first step
     assert linear["ground_contact"] == 0
-    assert linear["commit"] == 5
-    corot = launches_per_step(make_scene(mesh, "corotational"))
+    assert linear["energy_tets"] == 0                  # one Newton iteration is exact: no line search
+    assert linear["start_iterate"] == 5
+    corot = launches_per_step(make_scene(mesh, "corotational", solver=SolverSettings(step="single")))
     assert corot["extract_rotations"] == 5 and corot["build_preconditioner"] == 5
     ground = launches_per_step(make_scene(mesh, "linear", position=(0, 1, 0),
                                           effects=Effects(gravity=(0, -9.81, 0), ground=0.0)))
     assert ground["ground_contact"] == 5
-    assert ground["elastic_forces"] == linear["elastic_forces"]   # gravity adds code, not launches
+    assert ground["gradient_corners"] == linear["gradient_corners"]   # gravity adds code, not launches

@@ -264,12 +264,12 @@ def forced_failures(capture):
     import fem
 
     scene, _ = build_scene([HARD_CASES[1]], ["corotational"])
-    sim = fem.Simulation(scene, tolerance=1e-12, max_iterations=2)
+    sim = fem.Simulation(scene, tolerance=1e-12, max_iterations=2, step="single")
     capped = [sim.step() for _ in range(3)]
     capture()
     v = sim.velocities()
     v[3] = np.nan
-    sim.state.v.from_numpy(v)
+    sim.state.v.from_numpy(v)   # a user writing into the state
     before = sim.positions()
     nan = [sim.step() for _ in range(3)]
     return {"capped": capped, "nan": nan, "before": before, "after": sim.positions(), "stderr": capture()}
