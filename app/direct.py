@@ -18,6 +18,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from fem.builder import initial_state
+
 try:
     from sksparse.cholmod import cholesky
 except ImportError:
@@ -73,7 +75,8 @@ def factorise(A):
 class DirectSolver:
     """Steps a `fem.Simulation`'s scene with an assembled, factorised matrix.
 
-    Reads the engine's model and scene only; its own state is x, v (n, 3) float64 numpy arrays.
+    The coursework's step: one linear solve with the rotations frozen, what the engine does
+    with `step = "single"`. Reads the engine's model and scene only; its own state is x, v (n, 3) float64 numpy arrays.
     """
 
     def __init__(self, sim):
@@ -87,10 +90,10 @@ class DirectSolver:
         n, m = model.n_vertices, model.n_tets
         mu, lam = np.empty(m), np.empty(m)
         self.corotational = np.zeros(m, bool)
-        for info, body in zip(model.bodies, model.scene.bodies):
-            E, nu = body.material.E, body.material.nu
+        for info in model.bodies:
+            E, nu = info.material.E, info.material.nu
             mu[info.tets], lam[info.tets] = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
-            self.corotational[info.tets] = body.method == "corotational"
+            self.corotational[info.tets] = info.method == "corotational"
         g, W = shape_gradients(self.X, self.tets)
         self.Ke = element_stiffness(g, W, mu, lam)
         self.Bm = g[:, :3, :]                        # F = Ds Bm
@@ -98,7 +101,7 @@ class DirectSolver:
         self.free_dofs = np.repeat(self.free, 3)
         self.impulses = sorted(sim.impulses, key=lambda imp: imp[0])
         self.build_pattern(n)
-        self.x, self.v = model.initial_state()
+        self.x, self.v = initial_state(sim.scene, model)
         self.t = 0.0
         self.A, self.fixed = None, None     # the last matrix, and the dofs fixed when it was factorised
         self.pressed = np.zeros(n, bool)    # vertices the ground pushed up last step

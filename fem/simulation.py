@@ -48,12 +48,12 @@ class Simulation:
             scene = scene.with_method(method)
         overrides = {"method": solver, "dt": dt, "tolerance": tolerance, "max_iterations": max_iterations,
                      "step": step}
-        self.settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
-        self.settings.check(scene.path or scene.name)
+        settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
+        settings.check(scene.path or scene.name)
         self.scene = scene                      # the description; never edited
         self.model = build_model(scene)
         self.state, self.spare = State(self.model.n_vertices), State(self.model.n_vertices)
-        self.solver = ImplicitSolver(self.model, scene.effects, self.settings)
+        self.solver = ImplicitSolver(self.model, scene.effects, settings)
         self.measure = Measure(self.model, scene.effects.gravity)
         offsets = [b.vertices.start for b in self.model.bodies]
         self.impulses = []
@@ -74,6 +74,15 @@ class Simulation:
         self.steps = 0
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
         self.last = {}
+
+    @property
+    def settings(self):
+        """The SolverSettings the solver reads at every step (replace or edit them live)."""
+        return self.solver.settings
+
+    @settings.setter
+    def settings(self, value):
+        self.solver.settings = value
 
     @property
     def coefficients(self):
