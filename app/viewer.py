@@ -10,7 +10,7 @@ draw the bodies, the floor and the panel -> write a stats line.
 """
 
 import json
-import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,9 +19,10 @@ import numpy as np
 import taichi as ti
 
 import fem
-from app import orbit, picking
+from app import EXIT_INTERRUPTED, device, orbit, picking
 from app.camera import Camera, auto_frame
-from app.files import atomic_open, atomic_path, refuse_overwrite
+from app.display import display_problem
+from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
 from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
 from app.overlay import body_colors, scalar_colors
 from app.render import AMBIENT, FrameBuffers, background, build_frame
@@ -56,29 +57,31 @@ class Press:
 
 def run(args) -> int:
     check_display()
-    fem.init(args.arch, args.precision, debug=args.debug)
     width, height = parse_size(args.size)
-    if args.stats:
+    to_file = args.stats is not None and args.stats != "-"
+    if to_file:
         refuse_overwrite(args.stats, args.overwrite)
+    device.start(args)
     viewer = Viewer(args, width, height)
-    if args.stats:
-        with atomic_open(args.stats) as stats_file:
-            viewer.loop(stats_file)
-    else:
-        viewer.loop(None)
+    try:
+        if to_file:
+            with atomic_open(args.stats, keep_if_interrupted=True) as stats_file:
+                viewer.loop(stats_file)
+        else:
+            viewer.loop(sys.stdout if args.stats == "-" else None)
+    except KeyboardInterrupt:
+        viewer.stop_video()
+        kept = f"; kept the {viewer.frame} complete rows in {args.stats}" if to_file else ""
+        print(f"interrupted at frame {viewer.frame}{kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     return 0
 
 
 def check_display():
     """FemError unless a display is there: GLFW ends the process when it cannot open one."""
-    display = os.environ.get("DISPLAY", "")
-    hint = "run it under a desktop or xvfb-run, or use `main.py export` for frames and videos without one"
-    if not display and not os.environ.get("WAYLAND_DISPLAY"):
-        raise fem.FemError(f"view: no display ($DISPLAY is not set); {hint}")
-    if display.startswith(":"):           # a local X server listens on a socket we can see
-        number = display[1:].split(".")[0]
-        if not Path(f"/tmp/.X11-unix/X{number}").exists():
-            raise fem.FemError(f"view: no X server on display {display}; {hint}")
+    problem = display_problem()
+    if problem is not None:
+        raise fem.FemError(f"view: {problem}")
 
 
 def parse_size(text):
@@ -91,15 +94,6 @@ def parse_size(text):
     return width, height
 
 
-def numbered_path(stem: str, suffix: str) -> Path:
-    """stem-001.suffix, stem-002.suffix, ...: the first name not taken in the current folder."""
-    for n in range(1, 10000):
-        path = Path(f"{stem}-{n:03d}{suffix}")
-        if not path.exists():
-            return path
-    raise fem.FemError(f"too many files named {stem}-NNN{suffix} here")
-
-
 class Viewer:
     def __init__(self, args, width, height):
         self.args, self.width, self.height = args, width, height
@@ -107,7 +101,8 @@ class Viewer:
         self.scene_refs = names if args.scene in names else [args.scene] + names
         try:
             self.window = ti.ui.Window("softfem", (width, height), vsync=False)
-        except RuntimeError as e:         # e.g. "Vulkan must be available"
+        # Whatever stops it (no Vulkan driver, GLFW without a display) is one line, not a traceback.
+        except Exception as e:
             raise fem.FemError(f"view: cannot open the window: {e}") from None
         self.canvas = self.window.get_canvas()
         self.scene3d = self.window.get_scene()
@@ -126,7 +121,8 @@ class Viewer:
         self.press, self.marker, self.marker_until = None, None, 0.0
         self.drag_origin = None
         self.screenshot_due, self.strain_max = False, 1.0
-        self.video, self.video_path, self.message = None, None, ""
+        self.video, self.video_path, self.video_start, self.video_frames = None, None, 0.0, 0
+        self.message = ""
         self.load(args.scene)
 
     # ------------------------------------------------------------ scenes
@@ -337,10 +333,13 @@ class Viewer:
             self.stop_video()
             return
         import imageio.v2 as imageio
-        self.video_path = numbered_path(f"softfem-{Path(str(self.ref)).stem}", ".mp4")
+        self.video_path = numbered_path(self.args.out, f"softfem-{Path(str(self.ref)).stem}", ".mp4")
+        self.video_path.parent.mkdir(parents=True, exist_ok=True)
         self.video = imageio.get_writer(atomic_path(self.video_path), fps=VIDEO_FPS, codec="libx264",
                                         macro_block_size=16, quality=7)
+        self.video_start, self.video_frames = time.perf_counter(), 0
         self.message = f"recording {self.video_path}"
+        print(self.message, file=sys.stderr)
         self.events.append({"type": "video", "recording": True, "path": str(self.video_path)})
 
     def stop_video(self):
@@ -349,9 +348,17 @@ class Viewer:
         self.video.close()
         atomic_path(self.video_path).replace(self.video_path)
         self.message = f"saved {self.video_path}"
-        print(self.message)
+        print(self.message, file=sys.stderr)
         self.events.append({"type": "video", "recording": False, "path": str(self.video_path)})
         self.video = None
+
+    def record(self, image):
+        """Add the window's image to the recording as often as it stays on screen at VIDEO_FPS,
+        so the video plays at the speed it was seen (a slow frame repeats, a fast one may drop)."""
+        due = int((time.perf_counter() - self.video_start) * VIDEO_FPS) + 1
+        for _ in range(due - self.video_frames):
+            self.video.append_data(image)
+        self.video_frames = max(self.video_frames, due)
 
     # ------------------------------------------------------------ drawing
 
@@ -429,13 +436,15 @@ class Viewer:
         rgba = self.window.get_image_buffer_as_numpy()
         image = np.round(rgba[:, ::-1, :3].transpose(1, 0, 2) * 255).astype(np.uint8)
         if self.video is not None:
-            self.video.append_data(image)
+            self.record(image)
         if self.screenshot_due:
             from PIL import Image
-            path = numbered_path(f"softfem-{Path(str(self.ref)).stem}", ".png")
-            Image.fromarray(image).save(path)
+            path = numbered_path(self.args.out, f"softfem-{Path(str(self.ref)).stem}", ".png")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_open(path, "wb") as f:
+                Image.fromarray(image).save(f, format="PNG")
             self.message = f"saved {path}"
-            print(self.message)
+            print(self.message, file=sys.stderr)
             self.events.append({"type": "screenshot", "path": str(path)})
             self.screenshot_due = False
 
