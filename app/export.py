@@ -105,9 +105,10 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     timings = {"step": [], "simulation": [], "rendering": [], "writing": []}
     steps_run = []
-    written = 0
+    written = 0                 # complete PNG files
+    writer = VideoWriter(video, fps)
     try:
-        with VideoWriter(video, fps) as writer, Progress(args.frames, "frame", scene.name) as progress:
+        with writer, Progress(args.frames, "frame", scene.name) as progress:
             for index in range(args.frames):
                 start = time.perf_counter()
                 if index > 0:
@@ -120,10 +121,10 @@ def run(args) -> int:
 
                 lines = view.caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
                 write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines))
+                written = index + 1
                 if writer.active:
                     speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
                     writer.append(view.annotated(picture, lines + [speed]))
-                written = index + 1
 
                 timings["simulation"].append(1e3 * (simulated - start))
                 timings["rendering"].append(1e3 * (rendered - simulated))
@@ -132,16 +133,18 @@ def run(args) -> int:
     except KeyboardInterrupt:
         kept = (f"kept the {written} complete frames {out / FRAME_NAME.format(0)} .. "
                 f"{FRAME_NAME.format(written - 1)}" if written else "no frame was complete")
-        also = f" and a {written}-frame {video}" if video is not None and written else ""
+        also = f" and {video} with {writer.frames} frames" if writer.active and writer.frames else ""
         print(f"interrupted at frame {written} of {args.frames}: {kept}{also}", file=sys.stderr)
         return EXIT_INTERRUPTED
     if args.overwrite:
         remove_stale_frames(out, args.frames)
 
     print(summary(timings, steps, view.renderer.name))
+    if video is not None:
+        print(f"the video plays at {fps:.4g} frames per second: "
+              f"{fps * steps * sim.settings.dt:.3g}x real time")
     where = f"{out / FRAME_NAME.format(0)} .. {FRAME_NAME.format(args.frames - 1)}"
-    played = f" ({fps:.4g} fps, {fps * steps * sim.settings.dt:.3g}x real time)" if video else ""
-    print(f"wrote {args.frames} frames {where}" + (f" and {video}{played}" if video else ""))
+    print(f"wrote {args.frames} frames {where}" + (f" and {video}" if video else ""))
     return check_rejected(steps_run, sim.settings.dt)
 
 

@@ -128,6 +128,14 @@ def test_a_run_whose_every_step_is_rejected_fails_with_a_clear_error(here):
     assert "3 steps rejected" in out             # the summary still says what happened
 
 
+def test_export_without_out_writes_a_new_folder_each_time(here):
+    for folder in ("cube86", "cube86-2"):
+        code, out, err = run("export", "cube86", "--frames", "1", "--size", "160x128")
+        assert code == 0, err
+        assert (here / "out" / folder / "frame_00000.png").is_file()
+        assert f"out/{folder}/frame_00000.png" in out
+
+
 # ---------------------------------------------------------------- size limits
 
 def test_a_huge_frame_is_refused_with_the_limit_and_the_way_past_it(here):
