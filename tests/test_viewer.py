@@ -173,13 +173,32 @@ def wait_for(condition, timeout, what):
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
-def test_click_pushes_the_body_and_c_flips_the_method(display, cggs, tmp_path):
+# Two boxes at rest, no gravity: nothing moves until clicked.
+RESTING_BOXES = """
+name = "two resting boxes"
+[solver]
+dt = 0.01
+[[body]]
+name = "left"
+mesh = { generator = "box", size = [1.0, 1.0, 1.0], cells = [2, 2, 2] }
+material = { E = 1e4, nu = 0.3, density = 100.0 }
+position = [-0.8, 0.0, 0.0]
+[[body]]
+name = "right"
+mesh = { generator = "box", size = [1.0, 1.0, 1.0], cells = [2, 2, 2] }
+material = { E = 1e4, nu = 0.3, density = 100.0 }
+position = [0.8, 0.0, 0.0]
+"""
+
+
+def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
     import fem
     from app.viewer import initial_camera
     from PIL import Image
 
-    scene_file = cggs / "cylinder-scene.txt"
-    scene = fem.load_scene(scene_file)      # nothing moves in it until clicked
+    scene_file = tmp_path / "boxes.toml"
+    scene_file.write_text(RESTING_BOXES)
+    scene = fem.load_scene(scene_file)
     body = scene.bodies[1].mesh.vertices
     rest = np.concatenate([b.mesh.vertices for b in scene.bodies])
     target = pixel_of(body.mean(axis=0), initial_camera(rest, scene.camera, WIDTH, HEIGHT))
