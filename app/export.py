@@ -3,11 +3,13 @@
     python main.py export epcot --compare --frames 150 --out out/epcot --video out/epcot.mp4
 
 Frame 0 is the initial state; each later frame comes `steps_per_frame` time
-steps after the one before. The camera and the floor stay fixed for the whole
-export (the scene's camera hint, or framed on the initial state with room to
-deform), so frames can be compared with each other. --compare shows two
-panels, like a report's figure: the linear copy on the left and the
-corotational copy on the right, each seen by the same camera.
+steps after the one before. The camera (the scene's camera hint, or framed on
+the initial state with room to deform) stays where it is, so frames can be
+compared with each other, until a body would leave the picture: then it backs
+off to frame everything seen so far, and never comes closer again. The floor is
+drawn only for a scene with a ground. --compare shows two panels, like a
+report's figure: the linear copy on the left and the corotational copy on the
+right, each seen by the same camera.
 
 Reproducible pictures: the engine and the software renderer are deterministic
 on the CPU, so the PNGs depend only on the scene and the arguments. Their
@@ -64,6 +66,9 @@ TARGET_FPS = 30.0
 FRAMING_MARGIN = 0.25
 # From the scene's centre towards an auto-framed camera: in front, to the right and above.
 VIEW_DIRECTION = (1.0, 0.6, 1.6)
+# Bodies stay inside this part of the picture (normalised device coordinates, -1..1): the
+# rest is the edge and the captions' room.
+SAFE_AREA = 0.85
 DIVIDER_COLOR = (40, 44, 52)
 DIVIDER_WIDTH = 2  # pixels
 
@@ -167,13 +172,11 @@ class View:
                                "(--renderer software needs no Vulkan)") from None
         # Framed on the first panel's bodies: the others are copies of them, moved onto them.
         initial = sim.positions()[np.unique(self.panels[0].faces)]
-        aspect = self.panels[0].width / height
-        self.camera = (auto_framed(initial, aspect, scene.camera) if compare or scene.camera is None
+        self.aspect = self.panels[0].width / height
+        self.camera = (auto_framed(initial, self.aspect, scene.camera) if compare or scene.camera is None
                        else hinted(scene.camera))
-        if scene.effects.ground is not None:
-            self.ground_y = scene.effects.ground
-        else:   # for scale only: below the initial state, and staying there
-            self.ground_y = initial[:, 1].min() - FRAMING_MARGIN * np.ptp(initial, axis=0).max()
+        self.framed = (initial.min(axis=0), initial.max(axis=0))   # what the camera holds in view
+        self.ground_y = scene.effects.ground                        # None: no floor
         self.coloring = VertexColoring(sim, color, copies=2 if compare else 1)
         self.caption = caption_lines(sim.scene, compare)
         # Over the sky, or over the floor where the panels' labels take the top.
@@ -182,6 +185,8 @@ class View:
     def picture(self, sim) -> np.ndarray:
         """The simulation now, (H, W, 3) uint8: every panel, labels and the colour legend."""
         positions, colors = sim.positions(), self.coloring.colors(sim)
+        shown = np.concatenate([positions[np.unique(p.faces)] + p.offset for p in self.panels])
+        self.camera, self.framed = widened(self.camera, self.framed, shown, self.aspect)
         pictures = [self.renderer.render(positions + p.offset, p.faces, colors, self.camera,
                                          self.ground_y) for p in self.panels]
         return self.coloring.draw_legend(join_panels(pictures, self.panels))
@@ -257,6 +262,17 @@ def auto_framed(positions: np.ndarray, aspect: float, hint: dict | None) -> Came
     pad = FRAMING_MARGIN * (hi - lo).max()
     direction = VIEW_DIRECTION if hint is None else np.subtract(hint["eye"], hint["target"])
     return auto_frame(lo - pad, hi + pad, direction=direction, aspect=aspect)
+
+
+def widened(camera: Camera, framed, points: np.ndarray, aspect: float):
+    """(camera, framed): unchanged while every point (n, 3) projects inside SAFE_AREA; else a
+    camera from the same direction framing the box framed = (lo, hi) grown to hold the points."""
+    clip = np.c_[points, np.ones(len(points))] @ camera.view_proj(aspect).T
+    inside = (clip[:, 3] > 0) & (np.abs(clip[:, :2]) <= SAFE_AREA * clip[:, 3:4]).all(axis=1)
+    if inside.all():
+        return camera, framed
+    lo, hi = np.minimum(framed[0], points.min(axis=0)), np.maximum(framed[1], points.max(axis=0))
+    return auto_framed(np.array([lo, hi]), aspect, {"eye": camera.eye, "target": camera.target}), (lo, hi)
 
 
 def hinted(hint: dict) -> Camera:

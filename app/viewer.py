@@ -24,16 +24,16 @@ from app.camera import Camera, auto_frame
 from app.display import display_problem
 from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
 from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
-from app.overlay import body_colors, scalar_colors
+from app.colors import VertexColoring
 from app.render import AMBIENT, FrameBuffers, background, build_frame
 
 PANEL_WIDTH = 0.29              # of the window's width, on the right
+LABEL_SIZE = (0.14, 0.05)       # of the window: the title boxes naming the copies of --compare
 MAX_STEPS_PER_FRAME = 8
 VIDEO_FPS = 30
 MARKER_SECONDS = 0.8            # how long a click's hit point and arrow stay drawn
 MARKER_COLOR = (1.0, 0.85, 0.1)
 DRAG_PIXELS = 6                 # a press and release further apart than this is a drag
-VOLUME_RANGE = (0.8, 1.2)       # colour scale of the volume ratio J
 HELP = """\
 left click      push the body along the view ray
 left drag       push along the drag (longer = harder)
@@ -115,12 +115,12 @@ class Viewer:
         self.marker_arrow = ti.Vector.field(3, ti.f32, 16)
         self.sim = None
         self.paused = self.show_help = False
-        self.color_mode = "body"
+        self.coloring = None
         self.events, self.frame = [], 0
         self.fps, self.frame_seconds, self.render_ms, self.steps_last_frame = 0.0, 0.0, 0.0, 0
         self.press, self.marker, self.marker_until = None, None, 0.0
         self.drag_origin = None
-        self.screenshot_due, self.strain_max = False, 1.0
+        self.screenshot_due = False
         self.video, self.video_path, self.video_start, self.video_frames = None, None, 0.0, 0
         self.message = ""
         self.load(args.scene)
@@ -133,7 +133,9 @@ class Viewer:
         args = self.args
         scene = fem.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None)
         if args.compare:
-            scene = scene.side_by_side()
+            # A gap as wide as the scene, so that a linear copy growing as it turns stays clear of its twin.
+            width = np.ptp(np.concatenate([b.mesh.vertices for b in scene.bodies])[:, 0])
+            scene = scene.side_by_side(gap=max(0.5, float(width)))
         sim = fem.Simulation(scene, method=None if args.compare else args.method, solver=args.solver,
                              dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters)
         warm_up(sim)
@@ -141,7 +143,6 @@ class Viewer:
         model = sim.model
         self.body_starts = np.array([b.vertices.start for b in model.bodies])
         self.twins = len(model.bodies) // 2 if args.compare else 0
-        self.tet_count = np.bincount(model.tets_np.ravel(), minlength=model.n_vertices).clip(1)
         self.x = sim.positions()
         lo, hi = self.x.min(axis=0), self.x.max(axis=0)
         self.size = float(np.linalg.norm(hi - lo))
@@ -149,6 +150,7 @@ class Viewer:
         self.radius = 0.2 * self.size          # m
         self.material_body = 0
         self.material_edit = None
+        self.set_color_mode(self.coloring.mode if self.coloring else "body")
         self.reset_view()
         self.stats = sim.stats()
         self.events.append({"type": "scene", "scene": str(ref), "name": scene.name,
@@ -362,24 +364,14 @@ class Viewer:
 
     # ------------------------------------------------------------ drawing
 
-    def vertex_colors(self):
-        model = self.sim.model
-        if self.color_mode == "body":
-            bodies = model.vertex_body % self.twins if self.twins else model.vertex_body
-            return body_colors(bodies)
-        volume_ratio, energy_density = self.sim.tet_values()
-        per_tet = volume_ratio if self.color_mode == "volume" else energy_density
-        per_vertex = np.bincount(model.tets_np.ravel(), np.repeat(per_tet, 4),
-                                 minlength=model.n_vertices) / self.tet_count
-        if self.color_mode == "volume":
-            return scalar_colors(per_vertex, *VOLUME_RANGE, "coolwarm")
-        self.strain_max = max(float(np.percentile(per_tet, 99)), 1e-12)
-        return scalar_colors(per_vertex, 0.0, self.strain_max, "viridis")
+    def set_color_mode(self, mode):
+        """Colour by "body", "volume" or "strain", with the exporter's scales (app.colors)."""
+        self.coloring = VertexColoring(self.sim, mode, copies=2 if self.twins else 1)
 
     def draw(self):
         start = time.perf_counter()
         self.x = self.sim.positions()
-        frame = build_frame(self.x, self.sim.model.surface, self.vertex_colors(), self.camera,
+        frame = build_frame(self.x, self.sim.model.surface, self.coloring.colors(self.sim), self.camera,
                             ground_y=self.ground_y(), smooth=True)
         self.buffers.upload(frame)
         cam, g = self.camera, self.ggui_camera
@@ -400,6 +392,7 @@ class Viewer:
                               per_vertex_color=self.buffers.colors)
             self.draw_marker()
             self.canvas.scene(self.scene3d)
+            self.draw_copy_labels()
             self.draw_panel()
             if self.show_help:
                 self.draw_help()
@@ -409,8 +402,17 @@ class Viewer:
         self.render_ms = 1e3 * (time.perf_counter() - start)
 
     def ground_y(self):
-        ground = self.sim.scene.effects.ground
-        return ground if ground is not None else float(self.sim.model.rest_positions_np[:, 1].min()) - 0.01 * self.size
+        """The ground's height, m, or None without a ground: then no floor is drawn."""
+        return self.sim.scene.effects.ground
+
+    def draw_copy_labels(self):
+        """In compare mode, "linear" and "corotational" over the copies, following them."""
+        if not self.twins:
+            return
+        split = int(self.body_starts[self.twins])
+        for label, (x, y) in copy_labels(self.x, split, self.camera, self.width / self.height):
+            with self.gui.sub_window(label, x - LABEL_SIZE[0] / 2, y - LABEL_SIZE[1], *LABEL_SIZE) as g:
+                g.text("")
 
     def draw_marker(self):
         """The last click's hit point and its push as an arrow, or the drag in progress."""
@@ -504,12 +506,12 @@ class Viewer:
     def draw_colors(self, g):
         g.text("Colour")
         for mode in ("body", "volume", "strain"):
-            if g.checkbox(f"{mode}", self.color_mode == mode):
-                self.color_mode = mode
-        if self.color_mode == "volume":
-            g.text(f"volume ratio: blue {VOLUME_RANGE[0]}, grey 1, red {VOLUME_RANGE[1]}")
-        elif self.color_mode == "strain":
-            g.text(f"energy density 0 .. {self.strain_max:.3g} J/m^3")
+            if g.checkbox(f"{mode}", self.coloring.mode == mode) and self.coloring.mode != mode:
+                self.set_color_mode(mode)
+        if self.coloring.mode == "volume":
+            g.text(f"volume ratio J: blue {self.coloring.vmin}, grey 1, red {self.coloring.vmax}")
+        elif self.coloring.mode == "strain":
+            g.text(f"strain energy 0 .. {self.coloring.vmax:.3g} J/m^3 (grows, never shrinks)")
 
     def draw_solver(self, g):
         """Solver settings; the engine reads them at every step."""
@@ -575,6 +577,20 @@ def initial_camera(positions, scene_camera, width, height, compare=False) -> Cam
     camera = auto_frame(lo, hi, direction=direction, aspect=width * (1 - PANEL_WIDTH) / height)
     # Sliding the camera right moves the scene left, to the middle of the uncovered part.
     return orbit.pan(camera, -PANEL_WIDTH * width / 2, 0.0, height)
+
+
+def copy_labels(positions, split, camera, aspect):
+    """[("linear", (x, y)), ("corotational", (x, y))]: where to label the two copies of
+    --compare, as fractions of the window from its top-left corner, just above the middle of
+    each copy's top. positions (n, 3): the linear copies' vertices come before `split`."""
+    labels = []
+    for label, points in (("linear", positions[:split]), ("corotational", positions[split:])):
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        top = np.array([(lo[0] + hi[0]) / 2, hi[1], (lo[2] + hi[2]) / 2, 1.0])
+        clip = camera.view_proj(aspect) @ top
+        x, y = clip[:2] / clip[3]
+        labels.append((label, (float(np.clip((x + 1) / 2, 0, 1)), float(np.clip((1 - y) / 2, 0, 1)))))
+    return labels
 
 
 def warm_up(sim):

@@ -136,3 +136,19 @@ def test_interrupted_export_keeps_its_frames_and_a_video_of_them(workdir):
     assert f"kept the {len(written)} complete frames" in stderr and "cut.mp4" in stderr
     leftovers = [p.name for p in workdir.glob("cut*/*") if not p.name.startswith("frame_")]
     assert leftovers == [] and not list(workdir.glob("**/*.part*"))
+
+
+def test_the_camera_backs_off_when_a_body_would_leave_the_picture():
+    from app.export import SAFE_AREA, auto_framed, widened
+
+    box = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+    camera = auto_framed(box, 4 / 3, None)
+    framed = (box[0], box[1])
+    assert widened(camera, framed, box * 0.9, 4 / 3)[0] is camera     # still in view: it stays put
+    grown = box * 3.0 + [1.0, 0.0, 0.0]                              # inflated and drifting
+    wider, framed = widened(camera, framed, grown, 4 / 3)
+    clip = np.c_[grown, np.ones(2)] @ wider.view_proj(4 / 3).T
+    assert (np.abs(clip[:, :2] / clip[:, 3:]) <= SAFE_AREA).all()
+    direction = lambda c: (c.eye - c.target) / np.linalg.norm(c.eye - c.target)  # noqa: E731
+    np.testing.assert_allclose(direction(wider), direction(camera))  # the same view, from further
+    assert widened(wider, framed, box, 4 / 3)[0] is wider            # and it never comes back closer
