@@ -36,6 +36,12 @@ class Progress:
             self.bar.close()
         return False
 
+    def set_description(self, description: str):
+        """Name what is running now (as tqdm's set_description)."""
+        self.description = description
+        if self.bar is not None:
+            self.bar.set_description(description)
+
     def update(self, count: int = 1):
         self.done += count
         if self.bar is not None:

@@ -241,9 +241,10 @@ def test_no_progress_bar_in_a_log(monkeypatch):
     with progress.Progress(3, "frame", "epcot", stream=log) as bar:
         for _ in range(3):
             bar.update()
+            bar.set_description("epcot (linear)")
     assert "\r" not in log.getvalue()
     assert log.getvalue().splitlines() == ["epcot: 1/3 frames (33 %) after 0 s",
-                                           "epcot: 2/3 frames (67 %) after 0 s"]
+                                           "epcot (linear): 2/3 frames (67 %) after 0 s"]
 
 
 # ---------------------------------------------------------------- interruptions
@@ -276,3 +277,17 @@ def test_interrupted_simulate_keeps_every_complete_row(tmp_path, signal_number):
     assert len(rows) >= 20 and [r["step"] for r in rows] == list(range(1, len(rows) + 1))
     assert f"kept its {len(rows)} complete rows in s.jsonl" in err
     assert [p.name for p in tmp_path.iterdir()] == ["s.jsonl"]        # no .part file left
+
+
+def test_a_bare_command_without_a_usable_display_exports_instead(here, monkeypatch, tmp_path):
+    from app import cli
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setenv("WAYLAND_DISPLAY", "wayland-97")      # set, but no compositor behind it
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    (here / "out" / "epcot").mkdir(parents=True)
+    (here / "out" / "epcot" / "mine.png").write_text("an earlier export")
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        argv = cli.default_arguments()
+    assert argv[:3] == ["export", "epcot", "--compare"] and "out/epcot-2" in argv
+    assert "no Wayland compositor" in err.getvalue()
