@@ -246,8 +246,9 @@ def main(argv=None) -> int:
         argv = default_arguments()
     elif not any(word in commands for word in argv) and not {"-h", "--help", "--version"} & set(argv):
         # Flags alone (`main.py --linear`) start nothing: they belong to a command.
+        example = " ".join(argv if not argv[0].startswith("-") else [DEFAULT_SCENE, *argv])
         parser.error(f"no command given; commands: {', '.join(commands)}; "
-                     f"e.g. `{parser.prog} export epcot {argv[0]}`")
+                     f"e.g. `{parser.prog} export {example}`")
     args = parser.parse_args(argv)
     if args.command is None:
         parser.error(f"no command given; commands: {', '.join(commands)}")

@@ -19,7 +19,7 @@ from fem.mesh import MESHIO_READ_EXTENSIONS, read_tet_mesh
 
 from assets.bunny import bunny
 from assets.generators import box, dome, statue
-from assets.tetrahedralize import tetrahedralize_surface
+from assets.tetrahedralize import load_surface, tetrahedralize_surface
 
 GENERATORS = {"box": box, "dome": dome, "statue": statue, "bunny": bunny}
 
@@ -45,9 +45,10 @@ def mesh_file_scene(path):
     path = Path(path).absolute()
     if path.suffix.lower() in SURFACE_SUFFIXES:
         mesh = {"surface": str(path), "edge_length": MESH_FILE_EDGE_LENGTH}
+        vertices = load_surface(path)[0]     # the tets fill the surface: the same size
     else:
         mesh = {"file": str(path)}
-    vertices = build_mesh(mesh, path.parent, str(path)).vertices
+        vertices = read_tet_mesh(path).vertices
     largest_side = float((vertices.max(axis=0) - vertices.min(axis=0)).max())
     return {
         "name": path.stem,

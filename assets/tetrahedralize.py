@@ -72,7 +72,7 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
         estimate = round(TETS_AT_5_PERCENT * (0.05 / edge_length) ** 3)
         check_tet_count(estimate, path, f"edge_length {edge_length} gives about {estimate:,} tets")
         start = time.perf_counter()
-        vertices, faces = _load_surface(path)
+        vertices, faces = load_surface(path)
         if progress:
             print(f"tetrahedralising {path.name} ({len(faces)} triangles) with wildmeshing, "
                   f"edge length {edge_length} x bbox diagonal ...", file=sys.stderr, flush=True)
@@ -107,7 +107,7 @@ def _store(cached, arrays):
               file=sys.stderr)
 
 
-def _load_surface(path):
+def load_surface(path):
     """(n, 3) float64 vertices and (f, 3) int32 triangles of a surface file."""
     import trimesh
 

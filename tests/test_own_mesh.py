@@ -53,7 +53,7 @@ def test_a_surface_runs_in_one_command_tetrahedralised_and_cached(here):
     scene = fem.load_scene("ball.obj")
     assert tetrahedralize.last_cache_hit                  # the second time comes from the cache
     assert len(scene.bodies) == 1 and scene.bodies[0].method == "corotational"
-    assert largest_side(scene) == pytest.approx(assets.MESH_FILE_SIZE, rel=1e-6)
+    assert largest_side(scene) == pytest.approx(assets.MESH_FILE_SIZE, rel=0.01)   # as its surface
     assert scene.bodies[0].material.E == assets.MESH_FILE_MATERIAL["E"]
     assert scene.effects.gravity is None and scene.effects.ground is None
     assert [i.kind for i in scene.initial] == ["twist_shape", "spin"]
