@@ -1,1 +1,5 @@
-"""App layer: renderers, camera and overlays that read the engine's state."""
+"""App layer: the command line, renderers, camera and overlays that read the engine's state."""
+
+# Exit codes of every command: done, the run failed (every step rejected), bad input
+# (one `error:` line), interrupted (Ctrl-C or SIGTERM; complete files kept).
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130

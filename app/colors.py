@@ -2,14 +2,21 @@
 
 The engine measures per tet (`Simulation.tet_values`); a vertex shows the mean
 over the tets that share it, so colours vary smoothly over the surface. The
-scales are fixed for a whole run (not stretched to each frame's values), so
-equal colours mean equal values in every frame and in both copies of --compare.
+window and the exporter both colour through `VertexColoring`, so a quantity has
+the same colours in both. The volume scale is fixed; the strain scale starts at
+the energy of a small strain and only ever grows, to a round number above the
+largest energy seen so far (99th percentile over the tets), so a scene's range
+is shown rather than a saturated colour, equal colours mean equal values in
+both copies of --compare, and the legend says the scale of every frame.
 """
 
 import numpy as np
 
 from app.overlay import body_colors, draw_legend, scalar_colors
 from app.render import nice_step
+
+# Strain energy above this percentile of the tets (a few bad slivers) does not stretch the scale.
+STRAIN_PERCENTILE = 99
 
 MODES = ("body", "volume", "strain")
 
@@ -40,7 +47,7 @@ class VertexColoring:
             self.vmin, self.vmax = VOLUME_RANGE
         elif mode == "strain":
             self.title, self.colormap = "strain energy, J/m^3", "viridis"  # a density
-            self.vmin, self.vmax = 0.0, strain_energy_scale(sim.scene.bodies)
+            self.vmin, self.vmax = 0.0, strain_energy_scale(sim.model.bodies)
 
     def colors(self, sim) -> np.ndarray:
         """Colours (n, 3) of the simulation's vertices now."""
@@ -48,6 +55,10 @@ class VertexColoring:
             return self.body
         volume_ratio, energy_density = sim.tet_values()
         per_tet = volume_ratio if self.mode == "volume" else energy_density
+        if self.mode == "strain":
+            top = float(np.percentile(per_tet, STRAIN_PERCENTILE))
+            if np.isfinite(top) and top > self.vmax:
+                self.vmax = nice_ceiling(top)
         return scalar_colors(self.vertex_mean(per_tet), self.vmin, self.vmax, self.colormap)
 
     def vertex_mean(self, per_tet: np.ndarray) -> np.ndarray:
@@ -60,6 +71,12 @@ class VertexColoring:
         if self.mode == "body":
             return image
         return draw_legend(image, self.title, self.vmin, self.vmax, self.colormap)
+
+
+def nice_ceiling(value: float) -> float:
+    """The number 1, 2 or 5 times a power of ten at or just above value (> 0)."""
+    power = 10.0 ** np.floor(np.log10(value))
+    return min(s * power for s in (1.0, 2.0, 5.0, 10.0) if s * power >= value)
 
 
 def strain_energy_scale(bodies) -> float:

@@ -3,11 +3,13 @@
     python main.py export epcot --compare --frames 150 --out out/epcot --video out/epcot.mp4
 
 Frame 0 is the initial state; each later frame comes `steps_per_frame` time
-steps after the one before. The camera and the floor stay fixed for the whole
-export (the scene's camera hint, or framed on the initial state with room to
-deform), so frames can be compared with each other. --compare shows two
-panels, like a report's figure: the linear copy on the left and the
-corotational copy on the right, each seen by the same camera.
+steps after the one before. The camera (the scene's camera hint, or framed on
+the initial state with room to deform) stays where it is, so frames can be
+compared with each other, until a body would leave the picture: then it backs
+off to frame everything seen so far, and never comes closer again. The floor is
+drawn only for a scene with a ground. --compare shows two panels, like a
+report's figure: the linear copy on the left and the corotational copy on the
+right, each seen by the same camera.
 
 Reproducible pictures: the engine and the software renderer are deterministic
 on the CPU, so the PNGs depend only on the scene and the arguments. Their
@@ -15,16 +17,18 @@ overlay therefore shows simulated quantities only. Measured speed (ms per
 step, ms per frame) changes from run to run: it is drawn on the video's
 frames only (a video is re-encoded lossily anyway) and printed at the end.
 
+Videos play at real time: the frame rate is the simulated time between frames
+(`--speed 2` plays twice as fast).
+
 Nothing is lost: a non-empty --out folder or an existing --video file is
 refused without --overwrite, and every file is written under a temporary
-name and renamed when complete, so an interrupted export (Ctrl-C, SIGTERM)
-leaves only whole files.
+name and renamed when complete. An interrupted export (Ctrl-C, SIGTERM) keeps
+the frames written so far and closes the video on them, and says so.
 """
 
 import contextlib
 import os
 import re
-import signal
 import statistics
 import sys
 import time
@@ -35,24 +39,36 @@ import imageio.v2
 import imageio.v3
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
-from tqdm import tqdm
 
 import fem
+from app import EXIT_INTERRUPTED, device
 from app.camera import Camera, auto_frame
 from app.colors import VertexColoring
 from app.files import atomic_open, atomic_path, refuse_overwrite
 from app.overlay import PANEL_COLOR, TEXT_COLOR, draw_text_overlay
+from app.progress import Progress
 from app.render import make_renderer
+from app.simulate import check_rejected
+from fem.errors import SizeLimitError
 
 FRAME_NAME = "frame_{:05d}.png"
 FRAME_PATTERN = re.compile(r"frame_(\d{5})\.png")
 VIDEO_SUFFIXES = (".mp4", ".gif")
 # H.264 codes 16 x 16 pixel blocks: ffmpeg would resize any other frame size.
 MACRO_BLOCK = 16
+# Frames larger than this a side are refused unless --allow-large: 8K video is 7680 wide,
+# and a 100000 x 100000 frame (30 GB) is a typo.
+MAX_SIDE = 8192
+# Frame rate aimed at when choosing the steps per frame; the video's own rate then
+# makes it play at the requested speed.
+TARGET_FPS = 30.0
 # Room around the initial state, as a fraction of its largest extent, for bodies to deform into.
 FRAMING_MARGIN = 0.25
 # From the scene's centre towards an auto-framed camera: in front, to the right and above.
 VIEW_DIRECTION = (1.0, 0.6, 1.6)
+# Bodies stay inside this part of the picture (normalised device coordinates, -1..1): the
+# rest is the edge and the captions' room.
+SAFE_AREA = 0.85
 DIVIDER_COLOR = (40, 44, 52)
 DIVIDER_WIDTH = 2  # pixels
 
@@ -73,7 +89,8 @@ class Panel:
 
 def run(args) -> int:
     """Export frames (and a video) as the parsed command line `args` asks; returns the exit code."""
-    width, height = frame_size(args.size, MACRO_BLOCK if args.video else 2 if args.compare else 1)
+    width, height = frame_size(args.size, MACRO_BLOCK if args.video else 2 if args.compare else 1,
+                               args.allow_large)
     out = Path(args.out)
     video = Path(args.video) if args.video else None
     check_arguments(args, out, video)
@@ -81,43 +98,59 @@ def run(args) -> int:
     if video is not None:
         refuse_overwrite(video, args.overwrite)
 
-    fem.init(args.arch, args.precision, debug=args.debug)
+    device.start(args)
     scene = fem.load_scene(args.scene, overrides=args.set)
     sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
                          solver=args.solver, dt=args.dt, tolerance=args.tol,
-                         max_iterations=args.max_iters)
-    steps = steps_per_frame(args.steps_per_frame, args.fps, sim.settings.dt)
+                         max_iterations=args.max_iters, step=args.step)
+    steps = steps_per_frame(args.steps_per_frame, args.fps or TARGET_FPS, args.speed, sim.settings.dt)
+    fps = args.fps or video_rate(steps, sim.settings.dt, args.speed)
     view = View(sim, scene, args.compare, args.color, args.renderer, width, height)
 
     out.mkdir(parents=True, exist_ok=True)
     timings = {"step": [], "simulation": [], "rendering": [], "writing": []}
-    with interrupt_on_sigterm(), VideoWriter(video, args.fps) as writer, \
-            tqdm(total=args.frames, unit="frame", desc=scene.name, file=sys.stderr) as progress:
-        for index in range(args.frames):
-            start = time.perf_counter()
-            if index > 0:
-                timings["step"].append(statistics.mean(sim.step()["wall_ms"] for _ in range(steps)))
-            simulated = time.perf_counter()
-            picture = view.picture(sim)
-            rendered = time.perf_counter()
+    steps_run = []
+    written = 0                 # complete PNG files
+    writer = VideoWriter(video, fps)
+    try:
+        with writer, Progress(args.frames, "frame", scene.name) as progress:
+            for index in range(args.frames):
+                start = time.perf_counter()
+                if index > 0:
+                    infos = [sim.step() for _ in range(steps)]
+                    steps_run += infos
+                    timings["step"].append(statistics.mean(info["wall_ms"] for info in infos))
+                simulated = time.perf_counter()
+                picture = view.picture(sim)
+                rendered = time.perf_counter()
 
-            lines = view.caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
-            write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines))
-            if writer.active:
-                speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
-                writer.append(view.annotated(picture, lines + [speed]))
+                lines = view.caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
+                write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines))
+                written = index + 1
+                if writer.active:
+                    speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
+                    writer.append(view.annotated(picture, lines + [speed]))
 
-            timings["simulation"].append(1e3 * (simulated - start))
-            timings["rendering"].append(1e3 * (rendered - simulated))
-            timings["writing"].append(1e3 * (time.perf_counter() - rendered))
-            progress.update()
+                timings["simulation"].append(1e3 * (simulated - start))
+                timings["rendering"].append(1e3 * (rendered - simulated))
+                timings["writing"].append(1e3 * (time.perf_counter() - rendered))
+                progress.update()
+    except KeyboardInterrupt:
+        kept = (f"kept the {written} complete frames {out / FRAME_NAME.format(0)} .. "
+                f"{FRAME_NAME.format(written - 1)}" if written else "no frame was complete")
+        also = f" and {video} with {writer.frames} frames" if writer.active and writer.frames else ""
+        print(f"interrupted at frame {written} of {args.frames}: {kept}{also}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if args.overwrite:
         remove_stale_frames(out, args.frames)
 
     print(summary(timings, steps, view.renderer.name))
+    if video is not None:
+        print(f"the video plays at {fps:.4g} frames per second: "
+              f"{fps * steps * sim.settings.dt:.3g}x real time")
     where = f"{out / FRAME_NAME.format(0)} .. {FRAME_NAME.format(args.frames - 1)}"
     print(f"wrote {args.frames} frames {where}" + (f" and {video}" if video else ""))
-    return 0
+    return check_rejected(steps_run, sim.settings.dt)
 
 
 class View:
@@ -139,13 +172,11 @@ class View:
                                "(--renderer software needs no Vulkan)") from None
         # Framed on the first panel's bodies: the others are copies of them, moved onto them.
         initial = sim.positions()[np.unique(self.panels[0].faces)]
-        aspect = self.panels[0].width / height
-        self.camera = (auto_framed(initial, aspect, scene.camera) if compare or scene.camera is None
+        self.aspect = self.panels[0].width / height
+        self.camera = (auto_framed(initial, self.aspect, scene.camera) if compare or scene.camera is None
                        else hinted(scene.camera))
-        if scene.effects.ground is not None:
-            self.ground_y = scene.effects.ground
-        else:   # for scale only: below the initial state, and staying there
-            self.ground_y = initial[:, 1].min() - FRAMING_MARGIN * np.ptp(initial, axis=0).max()
+        self.framed = (initial.min(axis=0), initial.max(axis=0))   # what the camera holds in view
+        self.ground_y = scene.effects.ground                        # None: no floor
         self.coloring = VertexColoring(sim, color, copies=2 if compare else 1)
         self.caption = caption_lines(sim.scene, compare)
         # Over the sky, or over the floor where the panels' labels take the top.
@@ -154,6 +185,8 @@ class View:
     def picture(self, sim) -> np.ndarray:
         """The simulation now, (H, W, 3) uint8: every panel, labels and the colour legend."""
         positions, colors = sim.positions(), self.coloring.colors(sim)
+        shown = np.concatenate([positions[np.unique(p.faces)] + p.offset for p in self.panels])
+        self.camera, self.framed = widened(self.camera, self.framed, shown, self.aspect)
         pictures = [self.renderer.render(positions + p.offset, p.faces, colors, self.camera,
                                          self.ground_y) for p in self.panels]
         return self.coloring.draw_legend(join_panels(pictures, self.panels))
@@ -165,14 +198,18 @@ class View:
 
 # ---------------------------------------------------------------- arguments
 
-def frame_size(text: str, multiple: int) -> tuple[int, int]:
+def frame_size(text: str, multiple: int, allow_large: bool = False) -> tuple[int, int]:
     """(width, height) in pixels from "WxH", rounded to a multiple (16 for a video,
-    2 for two equal panels), saying so when that changes them."""
+    2 for two equal panels), saying so when that changes them; at most MAX_SIDE a side
+    unless allow_large."""
     match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
     if not match or min(int(match[1]), int(match[2])) < MACRO_BLOCK:
         raise fem.FemError(f"--size: expected WIDTHxHEIGHT of at least {MACRO_BLOCK}x{MACRO_BLOCK} "
                            f"pixels, e.g. 640x480, got {text!r}")
     width, height = int(match[1]), int(match[2])
+    if max(width, height) > MAX_SIDE and not allow_large:
+        raise SizeLimitError(f"--size {width}x{height}: more than {MAX_SIDE} pixels a side, the limit "
+                             f"(one frame would take {3 * width * height / 1e9:.1f} GB)")
     w, h = (multiple * round(n / multiple) for n in (width, height))
     if (w, h) != (width, height):
         print(f"--size {width}x{height}: frames must be multiples of {multiple} pixels here; "
@@ -191,9 +228,16 @@ def check_arguments(args, out: Path, video: Path | None):
         raise fem.FemError(f"--video {video}: use a .mp4 (H.264) or .gif file name")
 
 
-def steps_per_frame(requested: int | None, fps: float, dt: float) -> int:
-    """Time steps between frames: as requested, else real time at fps (at least 1)."""
-    return requested if requested is not None else max(1, round(1.0 / (fps * dt)))
+def steps_per_frame(requested: int | None, fps: float, speed: float, dt: float) -> int:
+    """Time steps between frames: as requested, else the number that shows `speed` seconds
+    of simulated time per second of video at about fps frames per second (at least 1)."""
+    return requested if requested is not None else max(1, round(speed / (fps * dt)))
+
+
+def video_rate(steps: int, dt: float, speed: float) -> float:
+    """Frames per second at which frames `steps` time steps of dt seconds apart play at
+    `speed` times real time."""
+    return speed / (steps * dt)
 
 
 # ---------------------------------------------------------------- what a frame shows
@@ -218,6 +262,17 @@ def auto_framed(positions: np.ndarray, aspect: float, hint: dict | None) -> Came
     pad = FRAMING_MARGIN * (hi - lo).max()
     direction = VIEW_DIRECTION if hint is None else np.subtract(hint["eye"], hint["target"])
     return auto_frame(lo - pad, hi + pad, direction=direction, aspect=aspect)
+
+
+def widened(camera: Camera, framed, points: np.ndarray, aspect: float):
+    """(camera, framed): unchanged while every point (n, 3) projects inside SAFE_AREA; else a
+    camera from the same direction framing the box framed = (lo, hi) grown to hold the points."""
+    clip = np.c_[points, np.ones(len(points))] @ camera.view_proj(aspect).T
+    inside = (clip[:, 3] > 0) & (np.abs(clip[:, :2]) <= SAFE_AREA * clip[:, 3:4]).all(axis=1)
+    if inside.all():
+        return camera, framed
+    lo, hi = np.minimum(framed[0], points.min(axis=0)), np.maximum(framed[1], points.max(axis=0))
+    return auto_framed(np.array([lo, hi]), aspect, {"eye": camera.eye, "target": camera.target}), (lo, hi)
 
 
 def hinted(hint: dict) -> Camera:
@@ -293,7 +348,8 @@ def remove_stale_frames(folder: Path, count: int):
 
 class VideoWriter:
     """Appends frames to an MP4 (H.264, yuv420p) or GIF written under a temporary
-    name; leaving the `with` block normally renames it into place, an exception removes it.
+    name; leaving the `with` block normally, or by an interruption (Ctrl-C, SIGTERM)
+    after some frames, renames it into place; any other exception removes it.
     With path None it does nothing (active is False)."""
 
     def __init__(self, path: Path | None, fps: float):
@@ -301,6 +357,7 @@ class VideoWriter:
         self.active = path is not None
         self.temporary = atomic_path(path) if self.active else None
         self.writer = None
+        self.frames = 0
 
     def __enter__(self):
         if not self.active:
@@ -322,33 +379,24 @@ class VideoWriter:
         else:
             # GIF delays are whole hundredths of a second; loop=0 repeats forever.
             self.writer.write(image, duration=1000.0 / self.fps, loop=0)
+        self.frames += 1
 
     def __exit__(self, kind, error, traceback):
         if not self.active:
             return False
+        # Interrupted, the video keeps the frames it has, as the PNGs do.
+        keep = kind is None or (issubclass(kind, KeyboardInterrupt) and self.frames > 0)
         try:
-            self.writer.close()
-        finally:
-            if kind is None:
+            if keep:
+                self.writer.close()
                 os.replace(self.temporary, self.path)
             else:
-                with contextlib.suppress(OSError):
-                    os.unlink(self.temporary)
+                with contextlib.suppress(Exception):   # a half-written video is discarded anyway
+                    self.writer.close()
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(self.temporary)
         return False
-
-
-@contextlib.contextmanager
-def interrupt_on_sigterm():
-    """Treat SIGTERM (a killed job, a cancelled CI step) like Ctrl-C, so that the
-    temporary files are removed on the way out instead of left behind."""
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def summary(timings: dict, steps: int, renderer: str) -> str:

@@ -2,11 +2,14 @@
 
 Every output goes to a temporary name in the same folder and is renamed into
 place when complete, so an interrupted run leaves only whole files; nothing
-existing is replaced unless the user said --overwrite.
+existing is replaced unless the user said --overwrite. Where an output will
+go is checked before any work starts (`check_output`), so a run never
+computes for minutes and then fails to save.
 """
 
 import contextlib
 import os
+import signal
 import tempfile
 from pathlib import Path
 
@@ -24,9 +27,41 @@ def refuse_overwrite(path, overwrite, flag="--overwrite"):
         raise FemError(f"{path}: file exists; use {flag} to replace it")
 
 
+def check_output(path, option, kind):
+    """FemError unless `path` can be written as a `kind` ("file" or "folder"), the value of
+    command-line `option` (named in the message).
+
+    Catches, before any work: a file where a folder must be (`afile/sub`), a folder
+    given as a file name, and a place where no file can be created (read-only file
+    system, /proc, no permission), by creating and removing a probe file in the
+    deepest folder that exists on the way.
+    """
+    path = Path(path)
+    where = f"{option} {path}"
+    if kind == "file" and path.is_dir():
+        raise FemError(f"{where}: is a folder; give a file name")
+    folder = path if kind == "folder" else path.parent
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise FemError(f"{where}: {existing} is a file, not a folder")
+    try:
+        descriptor, probe = tempfile.mkstemp(prefix=".probe.", dir=existing)
+        os.close(descriptor)
+        os.unlink(probe)
+    except OSError as error:
+        raise FemError(f"{where}: cannot create files in {existing} ({error.strerror})") from None
+
+
 @contextlib.contextmanager
-def atomic_open(path, mode="w"):
-    """Open a temporary file beside `path`; on success it replaces `path`, on error it vanishes."""
+def atomic_open(path, mode="w", keep_if_interrupted=False):
+    """Open a temporary file beside `path`; on success it replaces `path`, on error it vanishes.
+
+    keep_if_interrupted: for a stream of complete records (one JSON row per line,
+    each written with one call): on Ctrl-C or SIGTERM (KeyboardInterrupt) what was
+    written so far still replaces `path`, so an interrupted run keeps its rows.
+    """
     path = Path(path)
     if not path.parent.is_dir():
         try:
@@ -34,17 +69,25 @@ def atomic_open(path, mode="w"):
         except OSError as e:
             raise FemError(f"{path.parent}: cannot create folder: {e.strerror}") from None
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    try:
-        with os.fdopen(fd, mode) as f:
-            yield f
+
+    def put_in_place():
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
         os.replace(tmp, path)
-    except BaseException:
+
+    try:
+        try:
+            with os.fdopen(fd, mode) as f:
+                yield f
+        except KeyboardInterrupt:
+            if keep_if_interrupted:
+                put_in_place()
+            raise
+        put_in_place()
+    finally:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
-        raise
 
 
 def atomic_path(path):
@@ -52,3 +95,30 @@ def atomic_path(path):
     call os.replace(tmp, path) when it is complete."""
     path = Path(path)
     return path.with_name(f".{path.stem}.part{path.suffix}")
+
+
+def numbered_path(folder, stem: str, suffix: str) -> Path:
+    """folder/stem-001.suffix, stem-002.suffix, ...: the first name not taken."""
+    for n in range(1, 10000):
+        path = Path(folder) / f"{stem}-{n:03d}{suffix}"
+        if not path.exists():
+            return path
+    raise FemError(f"too many files named {stem}-NNN{suffix} in {folder}")
+
+
+@contextlib.contextmanager
+def interrupt_on_sigterm():
+    """Treat SIGTERM (a killed job, a cancelled CI step) like Ctrl-C, so that a run
+    stops the same way: complete files kept, temporary ones removed, exit code 130."""
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:            # not the main thread: signals stay as they are
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

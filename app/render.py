@@ -1,4 +1,4 @@
-"""What every renderer shares: the frame's geometry, lights, floor and background.
+"""What every renderer shares: the frame's geometry, lights, floor, shadow and background.
 
 A renderer turns one frame (surface of the bodies, per-vertex colours, camera)
 into an image. Both back ends (`ggui`, `software`) draw the very same triangles
@@ -9,6 +9,11 @@ with the same lighting formula, so their pictures can be compared pixel by pixel
 with l the unit vector from the surface point to each point light (as in GGUI's
 shader). The lights follow the camera: a key light above and to the left of the
 viewer, far away so it acts like the sun, and a weaker headlight at the eye.
+
+A floor is drawn only where the scene has a ground: a body floating in space
+drawn over a floor would seem to stand on it and then fly away. On the floor,
+each body casts a contact shadow (its outline seen from straight above), so
+how high it is can be judged from the gap between the two.
 """
 
 import contextlib
@@ -29,6 +34,7 @@ BACKGROUND_BOTTOM = np.array([0.90, 0.91, 0.93])
 FLOOR_LIGHT = np.array([0.88, 0.88, 0.87])
 FLOOR_DARK = np.array([0.79, 0.80, 0.81])
 FLOOR_TILES = 24  # per side
+SHADOW_DARKNESS = 0.6  # the shadow's colour is the floor's times this
 
 
 @dataclass
@@ -63,8 +69,8 @@ class Renderer:
         """Image of a surface mesh, shape (height, width, 3), uint8.
 
         vertices (n, 3) metres; faces (k, 3) int, counter-clockwise seen from
-        outside; colors (n, 3) in [0, 1]; ground_y: height of the floor in
-        metres, or None for just below the lowest vertex.
+        outside; colors (n, 3) in [0, 1]; ground_y: height of the ground in
+        metres, or None for no ground (no floor, no shadow).
         """
         raise NotImplementedError
 
@@ -147,20 +153,34 @@ def lights(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return np.array([key_position, camera.eye]), np.array([KEY_LIGHT, HEADLIGHT])
 
 
+def shadow(vertices: np.ndarray, faces: np.ndarray, camera: Camera, ground_y: float):
+    """The bodies' contact shadow on the ground: their triangles flattened onto it from above.
+
+    A hair above the floor, so it wins the depth test against it, and facing up.
+    Returns positions (3k, 3), normals (3k, 3), colors (3k, 3), triangles (k, 3).
+    """
+    lift = 1e-3 * np.linalg.norm(camera.eye - camera.target)
+    corners = np.asarray(vertices, dtype=np.float64)[faces].reshape(-1, 3)
+    corners[:, 1] = ground_y + lift
+    triangles = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
+    colors = np.tile(SHADOW_DARKNESS * (FLOOR_LIGHT + FLOOR_DARK) / 2, (len(corners), 1))
+    return corners, np.tile([0.0, 1.0, 0.0], (len(corners), 1)), colors, triangles
+
+
 def build_frame(vertices, faces, colors, camera: Camera, ground_y, smooth: bool) -> Frame:
-    """The bodies' surface plus the floor, as one list of triangles to draw."""
-    positions, normals, vertex_colors, triangles = surface(vertices, faces, colors, smooth)
-    if ground_y is None:
-        # A hair below the lowest vertex, so that resting bodies do not z-fight the floor.
-        ground_y = positions[:, 1].min() - 1e-3 * np.linalg.norm(camera.eye - camera.target)
-    floor_positions, floor_normals, floor_colors, floor_triangles = floor(camera, ground_y)
+    """The bodies' surface, and where there is a ground (ground_y, metres, not None) the
+    floor and the bodies' shadow on it, as one list of triangles to draw."""
+    parts = [surface(vertices, faces, colors, smooth)]
+    if ground_y is not None:
+        parts += [floor(camera, ground_y), shadow(vertices, np.asarray(faces), camera, ground_y)]
+    offsets = np.cumsum([0] + [len(part[0]) for part in parts[:-1]])
     light_positions, light_intensities = lights(camera)
     f32 = np.float32
     return Frame(
-        positions=np.concatenate([positions, floor_positions]).astype(f32),
-        normals=np.concatenate([normals, floor_normals]).astype(f32),
-        colors=np.concatenate([vertex_colors, floor_colors]).astype(f32),
-        triangles=np.concatenate([triangles, floor_triangles + len(positions)]).astype(np.int32),
+        positions=np.concatenate([part[0] for part in parts]).astype(f32),
+        normals=np.concatenate([part[1] for part in parts]).astype(f32),
+        colors=np.concatenate([part[2] for part in parts]).astype(f32),
+        triangles=np.concatenate([part[3] + offset for part, offset in zip(parts, offsets)]).astype(np.int32),
         light_positions=light_positions.astype(f32),
         light_intensities=light_intensities.astype(f32),
     )

@@ -1,11 +1,18 @@
-"""`main.py simulate`: run a scene without any window and summarise what happened."""
+"""`main.py simulate`: run a scene without any window and summarise what happened.
+
+With --stats FILE one JSON row per step goes to FILE (with --stats -, to stdout,
+and the summary to stderr so that stdout stays pure JSON lines). An interrupted
+run (Ctrl-C, SIGTERM) keeps the complete rows written so far and says so.
+"""
 
 import json
 import statistics
 import sys
 
 import fem
+from app import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, device
 from app.files import atomic_open, refuse_overwrite
+from app.progress import Progress
 from fem.mesh import mesh_quality
 
 
@@ -13,24 +20,52 @@ def build_simulation(args):
     """The Simulation the common options ask for (scene, method, solver overrides, --set)."""
     scene = fem.load_scene(args.scene, overrides=args.set)
     return fem.Simulation(scene, method=args.method, solver=args.solver, dt=args.dt,
-                          tolerance=args.tol, max_iterations=args.max_iters)
+                          tolerance=args.tol, max_iterations=args.max_iters, step=args.step)
 
 
-def run(args):
-    fem.init(args.arch, args.precision, debug=args.debug)
-    sim = build_simulation(args)
-    if args.stats and args.stats != "-":
+def run(args) -> int:
+    """Run the steps `args` asks for; returns the exit code."""
+    to_file = args.stats is not None and args.stats != "-"
+    if to_file:
         refuse_overwrite(args.stats, args.overwrite)
+    device.start(args)
+    sim = build_simulation(args)
     rows = []
-    with (atomic_open(args.stats) if args.stats and args.stats != "-" else _nullfile(args.stats)) as out:
-        for _ in range(args.steps):
-            sim.step()
-            row = sim.stats() if out else sim.last
-            if out:
-                out.write(json.dumps(row) + "\n")
-            rows.append(row)
-    print(summary(sim, rows))
-    return 0
+    # The summary goes where it does not mix with the rows.
+    report = sys.stderr if args.stats == "-" else sys.stdout
+    try:
+        with (atomic_open(args.stats, keep_if_interrupted=True) if to_file else _nullfile(args.stats)) as out, \
+                Progress(args.steps, "step", sim.scene.name) as progress:
+            for _ in range(args.steps):
+                sim.step()
+                row = sim.stats() if out else sim.last
+                if out:
+                    out.write(json.dumps(row) + "\n")
+                rows.append(row)
+                progress.update()
+    except KeyboardInterrupt:
+        kept = f"; kept its {len(rows)} complete rows in {args.stats}" if to_file else ""
+        print(f"interrupted at step {len(rows) + 1} of {args.steps}{kept}", file=sys.stderr)
+        if rows:
+            print(summary(sim, rows), file=report)
+        return EXIT_INTERRUPTED
+    print(summary(sim, rows), file=report)
+    return check_rejected(rows, sim.settings.dt)
+
+
+def check_rejected(rows, dt) -> int:
+    """The exit code of a run by its steps: EXIT_FAILED, with an error line, when every step
+    was rejected (non-finite values: nothing was simulated); a warning when some were."""
+    rejected = sum(not r["finite"] for r in rows)
+    if rows and rejected == len(rows):
+        print(f"error: every one of the {len(rows)} steps was rejected (non-finite values), so nothing "
+              f"moved; the time step dt = {dt:g} s is probably far too large for this scene: "
+              f"try a smaller --dt", file=sys.stderr)
+        return EXIT_FAILED
+    if rejected:
+        print(f"warning: {rejected} of {len(rows)} steps were rejected (non-finite values) and the "
+              f"state before each kept; a smaller --dt may help", file=sys.stderr)
+    return EXIT_OK
 
 
 class _nullfile:
@@ -59,12 +94,14 @@ def summary(sim, rows):
         quality = mesh_quality(sim.scene.bodies[i].mesh)
         lines.append(f"  {b.name}: {quality['tets']} tets, {quality['vertices']} vertices, "
                      f"min dihedral {quality['min_dihedral_deg']:.1f} deg, volume {quality['volume']:.4g} m^3; "
-                     f"{sim.scene.bodies[i].method}, volume ratio now {final['volume_ratio'][i]:.4f}")
+                     f"{sim.model.bodies[i].method}, volume ratio now {final['volume_ratio'][i]:.4f}")
     not_converged = sum(not r["converged"] for r in rows)
     rejected = sum(not r["finite"] for r in rows)
     lines.append(f"{len(rows)} steps to t = {sim.t:.3f} s: {statistics.median(ms):.2f} ms/step (median), "
-                 f"{statistics.mean(iters):.1f} solver iterations/step, "
+                 f"{statistics.mean([r['newton_iters'] for r in rows] or [0]):.1f} Newton and "
+                 f"{statistics.mean(iters):.1f} solver iterations/step ({sim.settings.step} step), "
                  f"{not_converged} steps not converged, {rejected} steps rejected")
-    lines.append(f"energy: kinetic {final['kinetic_energy']:.4g} J, elastic {final['elastic_energy']:.4g} J; "
+    lines.append(f"energy: kinetic {final['kinetic_energy']:.4g} J, elastic {final['elastic_energy']:.4g} J, "
+                 f"total {final['total_energy']:.4g} J; "
                  f"inverted tets {final['inverted_tets']}")
     return "\n".join(lines)

@@ -10,7 +10,7 @@ draw the bodies, the floor and the panel -> write a stats line.
 """
 
 import json
-import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,20 +19,21 @@ import numpy as np
 import taichi as ti
 
 import fem
-from app import orbit, picking
+from app import EXIT_INTERRUPTED, device, orbit, picking
 from app.camera import Camera, auto_frame
-from app.files import atomic_open, atomic_path, refuse_overwrite
+from app.display import display_problem
+from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
 from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
-from app.overlay import body_colors, scalar_colors
+from app.colors import VertexColoring
 from app.render import AMBIENT, FrameBuffers, background, build_frame
 
 PANEL_WIDTH = 0.29              # of the window's width, on the right
+LABEL_SIZE = (0.14, 0.05)       # of the window: the title boxes naming the copies of --compare
 MAX_STEPS_PER_FRAME = 8
 VIDEO_FPS = 30
 MARKER_SECONDS = 0.8            # how long a click's hit point and arrow stay drawn
 MARKER_COLOR = (1.0, 0.85, 0.1)
 DRAG_PIXELS = 6                 # a press and release further apart than this is a drag
-VOLUME_RANGE = (0.8, 1.2)       # colour scale of the volume ratio J
 HELP = """\
 left click      push the body along the view ray
 left drag       push along the drag (longer = harder)
@@ -56,29 +57,31 @@ class Press:
 
 def run(args) -> int:
     check_display()
-    fem.init(args.arch, args.precision, debug=args.debug)
     width, height = parse_size(args.size)
-    if args.stats:
+    to_file = args.stats is not None and args.stats != "-"
+    if to_file:
         refuse_overwrite(args.stats, args.overwrite)
+    device.start(args)
     viewer = Viewer(args, width, height)
-    if args.stats:
-        with atomic_open(args.stats) as stats_file:
-            viewer.loop(stats_file)
-    else:
-        viewer.loop(None)
+    try:
+        if to_file:
+            with atomic_open(args.stats, keep_if_interrupted=True) as stats_file:
+                viewer.loop(stats_file)
+        else:
+            viewer.loop(sys.stdout if args.stats == "-" else None)
+    except KeyboardInterrupt:
+        viewer.stop_video()
+        kept = f"; kept the {viewer.frame} complete rows in {args.stats}" if to_file else ""
+        print(f"interrupted at frame {viewer.frame}{kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     return 0
 
 
 def check_display():
     """FemError unless a display is there: GLFW ends the process when it cannot open one."""
-    display = os.environ.get("DISPLAY", "")
-    hint = "run it under a desktop or xvfb-run, or use `main.py export` for frames and videos without one"
-    if not display and not os.environ.get("WAYLAND_DISPLAY"):
-        raise fem.FemError(f"view: no display ($DISPLAY is not set); {hint}")
-    if display.startswith(":"):           # a local X server listens on a socket we can see
-        number = display[1:].split(".")[0]
-        if not Path(f"/tmp/.X11-unix/X{number}").exists():
-            raise fem.FemError(f"view: no X server on display {display}; {hint}")
+    problem = display_problem()
+    if problem is not None:
+        raise fem.FemError(f"view: {problem}")
 
 
 def parse_size(text):
@@ -91,15 +94,6 @@ def parse_size(text):
     return width, height
 
 
-def numbered_path(stem: str, suffix: str) -> Path:
-    """stem-001.suffix, stem-002.suffix, ...: the first name not taken in the current folder."""
-    for n in range(1, 10000):
-        path = Path(f"{stem}-{n:03d}{suffix}")
-        if not path.exists():
-            return path
-    raise fem.FemError(f"too many files named {stem}-NNN{suffix} here")
-
-
 class Viewer:
     def __init__(self, args, width, height):
         self.args, self.width, self.height = args, width, height
@@ -107,7 +101,8 @@ class Viewer:
         self.scene_refs = names if args.scene in names else [args.scene] + names
         try:
             self.window = ti.ui.Window("softfem", (width, height), vsync=False)
-        except RuntimeError as e:         # e.g. "Vulkan must be available"
+        # Whatever stops it (no Vulkan driver, GLFW without a display) is one line, not a traceback.
+        except Exception as e:
             raise fem.FemError(f"view: cannot open the window: {e}") from None
         self.canvas = self.window.get_canvas()
         self.scene3d = self.window.get_scene()
@@ -120,13 +115,14 @@ class Viewer:
         self.marker_arrow = ti.Vector.field(3, ti.f32, 16)
         self.sim = None
         self.paused = self.show_help = False
-        self.color_mode = "body"
+        self.coloring = None
         self.events, self.frame = [], 0
         self.fps, self.frame_seconds, self.render_ms, self.steps_last_frame = 0.0, 0.0, 0.0, 0
         self.press, self.marker, self.marker_until = None, None, 0.0
         self.drag_origin = None
-        self.screenshot_due, self.strain_max = False, 1.0
-        self.video, self.video_path, self.message = None, None, ""
+        self.screenshot_due = False
+        self.video, self.video_path, self.video_start, self.video_frames = None, None, 0.0, 0
+        self.message = ""
         self.load(args.scene)
 
     # ------------------------------------------------------------ scenes
@@ -137,15 +133,16 @@ class Viewer:
         args = self.args
         scene = fem.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None)
         if args.compare:
-            scene = scene.side_by_side()
+            # A gap as wide as the scene, so that a linear copy growing as it turns stays clear of its twin.
+            width = np.ptp(np.concatenate([b.mesh.vertices for b in scene.bodies])[:, 0])
+            scene = scene.side_by_side(gap=max(0.5, float(width)))
         sim = fem.Simulation(scene, method=None if args.compare else args.method, solver=args.solver,
-                             dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters)
+                             dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters, step=args.step)
         warm_up(sim)
         self.sim, self.ref = sim, ref
         model = sim.model
         self.body_starts = np.array([b.vertices.start for b in model.bodies])
         self.twins = len(model.bodies) // 2 if args.compare else 0
-        self.tet_count = np.bincount(model.tets_np.ravel(), minlength=model.n_vertices).clip(1)
         self.x = sim.positions()
         lo, hi = self.x.min(axis=0), self.x.max(axis=0)
         self.size = float(np.linalg.norm(hi - lo))
@@ -153,6 +150,7 @@ class Viewer:
         self.radius = 0.2 * self.size          # m
         self.material_body = 0
         self.material_edit = None
+        self.set_color_mode(self.coloring.mode if self.coloring else "body")
         self.reset_view()
         self.stats = sim.stats()
         self.events.append({"type": "scene", "scene": str(ref), "name": scene.name,
@@ -173,7 +171,7 @@ class Viewer:
                                      compare=self.args.compare)
 
     def methods(self):
-        return [b.method for b in self.sim.scene.bodies]
+        return [b.method for b in self.sim.model.bodies]
 
     # ------------------------------------------------------------ main loop
 
@@ -328,7 +326,7 @@ class Viewer:
 
     def set_methods(self, methods):
         for body, method in enumerate(methods):
-            if method != self.sim.scene.bodies[body].method:
+            if method != self.sim.model.bodies[body].method:
                 self.sim.set_method(method, body)
         self.events.append({"type": "methods", "methods": self.methods()})
 
@@ -337,10 +335,13 @@ class Viewer:
             self.stop_video()
             return
         import imageio.v2 as imageio
-        self.video_path = numbered_path(f"softfem-{Path(str(self.ref)).stem}", ".mp4")
+        self.video_path = numbered_path(self.args.out, f"softfem-{Path(str(self.ref)).stem}", ".mp4")
+        self.video_path.parent.mkdir(parents=True, exist_ok=True)
         self.video = imageio.get_writer(atomic_path(self.video_path), fps=VIDEO_FPS, codec="libx264",
                                         macro_block_size=16, quality=7)
+        self.video_start, self.video_frames = time.perf_counter(), 0
         self.message = f"recording {self.video_path}"
+        print(self.message, file=sys.stderr)
         self.events.append({"type": "video", "recording": True, "path": str(self.video_path)})
 
     def stop_video(self):
@@ -349,30 +350,28 @@ class Viewer:
         self.video.close()
         atomic_path(self.video_path).replace(self.video_path)
         self.message = f"saved {self.video_path}"
-        print(self.message)
+        print(self.message, file=sys.stderr)
         self.events.append({"type": "video", "recording": False, "path": str(self.video_path)})
         self.video = None
 
+    def record(self, image):
+        """Add the window's image to the recording as often as it stays on screen at VIDEO_FPS,
+        so the video plays at the speed it was seen (a slow frame repeats, a fast one may drop)."""
+        due = int((time.perf_counter() - self.video_start) * VIDEO_FPS) + 1
+        for _ in range(due - self.video_frames):
+            self.video.append_data(image)
+        self.video_frames = max(self.video_frames, due)
+
     # ------------------------------------------------------------ drawing
 
-    def vertex_colors(self):
-        model = self.sim.model
-        if self.color_mode == "body":
-            bodies = model.vertex_body % self.twins if self.twins else model.vertex_body
-            return body_colors(bodies)
-        volume_ratio, energy_density = self.sim.tet_values()
-        per_tet = volume_ratio if self.color_mode == "volume" else energy_density
-        per_vertex = np.bincount(model.tets_np.ravel(), np.repeat(per_tet, 4),
-                                 minlength=model.n_vertices) / self.tet_count
-        if self.color_mode == "volume":
-            return scalar_colors(per_vertex, *VOLUME_RANGE, "coolwarm")
-        self.strain_max = max(float(np.percentile(per_tet, 99)), 1e-12)
-        return scalar_colors(per_vertex, 0.0, self.strain_max, "viridis")
+    def set_color_mode(self, mode):
+        """Colour by "body", "volume" or "strain", with the exporter's scales (app.colors)."""
+        self.coloring = VertexColoring(self.sim, mode, copies=2 if self.twins else 1)
 
     def draw(self):
         start = time.perf_counter()
         self.x = self.sim.positions()
-        frame = build_frame(self.x, self.sim.model.surface, self.vertex_colors(), self.camera,
+        frame = build_frame(self.x, self.sim.model.surface, self.coloring.colors(self.sim), self.camera,
                             ground_y=self.ground_y(), smooth=True)
         self.buffers.upload(frame)
         cam, g = self.camera, self.ggui_camera
@@ -393,6 +392,7 @@ class Viewer:
                               per_vertex_color=self.buffers.colors)
             self.draw_marker()
             self.canvas.scene(self.scene3d)
+            self.draw_copy_labels()
             self.draw_panel()
             if self.show_help:
                 self.draw_help()
@@ -402,8 +402,17 @@ class Viewer:
         self.render_ms = 1e3 * (time.perf_counter() - start)
 
     def ground_y(self):
-        ground = self.sim.scene.effects.ground
-        return ground if ground is not None else float(self.sim.model.rest_positions_np[:, 1].min()) - 0.01 * self.size
+        """The ground's height, m, or None without a ground: then no floor is drawn."""
+        return self.sim.scene.effects.ground
+
+    def draw_copy_labels(self):
+        """In compare mode, "linear" and "corotational" over the copies, following them."""
+        if not self.twins:
+            return
+        split = int(self.body_starts[self.twins])
+        for label, (x, y) in copy_labels(self.x, split, self.camera, self.width / self.height):
+            with self.gui.sub_window(label, x - LABEL_SIZE[0] / 2, y - LABEL_SIZE[1], *LABEL_SIZE) as g:
+                g.text("")
 
     def draw_marker(self):
         """The last click's hit point and its push as an arrow, or the drag in progress."""
@@ -429,13 +438,15 @@ class Viewer:
         rgba = self.window.get_image_buffer_as_numpy()
         image = np.round(rgba[:, ::-1, :3].transpose(1, 0, 2) * 255).astype(np.uint8)
         if self.video is not None:
-            self.video.append_data(image)
+            self.record(image)
         if self.screenshot_due:
             from PIL import Image
-            path = numbered_path(f"softfem-{Path(str(self.ref)).stem}", ".png")
-            Image.fromarray(image).save(path)
+            path = numbered_path(self.args.out, f"softfem-{Path(str(self.ref)).stem}", ".png")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_open(path, "wb") as f:
+                Image.fromarray(image).save(f, format="PNG")
             self.message = f"saved {path}"
-            print(self.message)
+            print(self.message, file=sys.stderr)
             self.events.append({"type": "screenshot", "path": str(path)})
             self.screenshot_due = False
 
@@ -470,7 +481,7 @@ class Viewer:
         g.text(f"{s.get('solver', self.sim.settings.method)}: {s.get('solver_iters', 0)} iterations, "
                f"residual {residual if residual is not None else float('nan'):.1e}"
                + ("" if s.get("converged", True) else "  NOT CONVERGED"))
-        for body, ratio in zip(self.sim.scene.bodies, s["volume_ratio"]):
+        for body, ratio in zip(self.sim.model.bodies, s["volume_ratio"]):
             g.text(f"volume {100 * ratio:6.1f} %  {body.name}")
         g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
         g.text(f"inverted tets: {s['inverted_tets']}")
@@ -483,7 +494,7 @@ class Viewer:
             self.toggle_corotation()
             return
         wanted = ["corotational" if g.checkbox(f"{i}: {b.name}", m == "corotational") else "linear"
-                  for i, (b, m) in enumerate(zip(self.sim.scene.bodies, methods))]
+                  for i, (b, m) in enumerate(zip(self.sim.model.bodies, methods))]
         if wanted != methods:
             self.set_methods(wanted)
 
@@ -495,12 +506,12 @@ class Viewer:
     def draw_colors(self, g):
         g.text("Colour")
         for mode in ("body", "volume", "strain"):
-            if g.checkbox(f"{mode}", self.color_mode == mode):
-                self.color_mode = mode
-        if self.color_mode == "volume":
-            g.text(f"volume ratio: blue {VOLUME_RANGE[0]}, grey 1, red {VOLUME_RANGE[1]}")
-        elif self.color_mode == "strain":
-            g.text(f"energy density 0 .. {self.strain_max:.3g} J/m^3")
+            if g.checkbox(f"{mode}", self.coloring.mode == mode) and self.coloring.mode != mode:
+                self.set_color_mode(mode)
+        if self.coloring.mode == "volume":
+            g.text(f"volume ratio J: blue {self.coloring.vmin}, grey 1, red {self.coloring.vmax}")
+        elif self.coloring.mode == "strain":
+            g.text(f"strain energy 0 .. {self.coloring.vmax:.3g} J/m^3 (grows, never shrinks)")
 
     def draw_solver(self, g):
         """Solver settings; the engine reads them at every step."""
@@ -524,7 +535,7 @@ class Viewer:
     def draw_material(self, g):
         """E and nu of one body, applied when the slider is let go (changing them rebuilds
         the preconditioner, and each drag position would otherwise be a new material)."""
-        bodies = self.sim.scene.bodies
+        bodies = self.sim.model.bodies
         g.text("Material")
         if len(bodies) > 1:
             self.material_body = g.slider_int("body", self.material_body, 0, len(bodies) - 1)
@@ -568,10 +579,24 @@ def initial_camera(positions, scene_camera, width, height, compare=False) -> Cam
     return orbit.pan(camera, -PANEL_WIDTH * width / 2, 0.0, height)
 
 
+def copy_labels(positions, split, camera, aspect):
+    """[("linear", (x, y)), ("corotational", (x, y))]: where to label the two copies of
+    --compare, as fractions of the window from its top-left corner, just above the middle of
+    each copy's top. positions (n, 3): the linear copies' vertices come before `split`."""
+    labels = []
+    for label, points in (("linear", positions[:split]), ("corotational", positions[split:])):
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        top = np.array([(lo[0] + hi[0]) / 2, hi[1], (lo[2] + hi[2]) / 2, 1.0])
+        clip = camera.view_proj(aspect) @ top
+        x, y = clip[:2] / clip[3]
+        labels.append((label, (float(np.clip((x + 1) / 2, 0, 1)), float(np.clip((1 - y) / 2, 0, 1)))))
+    return labels
+
+
 def warm_up(sim):
     """Compile every kernel the window may need (both methods, the stats) now,
     so that toggling corotation later does not stall a frame; then start over."""
-    methods = [b.method for b in sim.scene.bodies]
+    methods = [b.method for b in sim.model.bodies]
     for method in ("corotational", "linear"):
         sim.set_method(method)
         sim.step()

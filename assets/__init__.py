@@ -5,6 +5,9 @@
     {generator = "box", size = [1, 1, 1], cells = [4, 4, 4]}   # see GENERATORS
     {file = "meshes/part.mesh"}                                # a tet mesh file
     {surface = "shapes/cup.obj", edge_length = 0.05}           # tetrahedralised, cached
+
+`mesh_file_scene` makes a one-body scene of a mesh file, so that a user's own
+shape runs with `main.py simulate my_shape.obj`.
 """
 
 import difflib
@@ -12,15 +15,51 @@ import inspect
 from pathlib import Path
 
 from fem.errors import FemError
-from fem.mesh import read_tet_mesh
+from fem.mesh import MESHIO_READ_EXTENSIONS, read_tet_mesh
 
 from assets.bunny import bunny
 from assets.generators import box, dome, statue
-from assets.tetrahedralize import tetrahedralize_surface
+from assets.tetrahedralize import load_surface, tetrahedralize_surface
 
 GENERATORS = {"box": box, "dome": dome, "statue": statue, "bunny": bunny}
 
 SOURCES = ("generator", "file", "surface")
+
+SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off")
+TET_MESH_SUFFIXES = (".mesh", *MESHIO_READ_EXTENSIONS)
+MESH_FILE_SUFFIXES = SURFACE_SUFFIXES + TET_MESH_SUFFIXES
+
+# A mesh file run as a scene (documented in scenes/README.md): the body is scaled to
+# MESH_FILE_SIZE metres across its largest side, whatever the file's units, so that the
+# material, the time step and the window's push suit it; then, as in the epcot scene,
+# wrung about the vertical and set spinning, where linear FEM visibly flattens and grows.
+MESH_FILE_SIZE = 1.0            # m
+MESH_FILE_EDGE_LENGTH = 0.05    # of a surface's bounding-box diagonal: a few thousand tets
+MESH_FILE_MATERIAL = {"E": 5e4, "nu": 0.4, "density": 1000.0}
+
+
+def mesh_file_scene(path):
+    """The raw TOML data of a one-body scene made of the mesh file at `path` (a surface
+    .obj/.stl/.ply/.off, tetrahedralised and cached, or a tet mesh), with the defaults above;
+    fem.load_scene reads it like a scene file, so --set changes any of it."""
+    path = Path(path).absolute()
+    if path.suffix.lower() in SURFACE_SUFFIXES:
+        mesh = {"surface": str(path), "edge_length": MESH_FILE_EDGE_LENGTH}
+        vertices = load_surface(path)[0]     # the tets fill the surface: the same size
+    else:
+        mesh = {"file": str(path)}
+        vertices = read_tet_mesh(path).vertices
+    largest_side = float((vertices.max(axis=0) - vertices.min(axis=0)).max())
+    return {
+        "name": path.stem,
+        "description": f"{path.name}: wrung and spun, no gravity (the defaults for a mesh file)",
+        "solver": {"dt": 0.02, "tolerance": 1e-3, "max_iterations": 200},
+        "effects": {"damping": {"alpha": 0.1, "beta": 0.02}},
+        "body": [{"name": path.stem, "mesh": mesh, "material": dict(MESH_FILE_MATERIAL),
+                  "scale": MESH_FILE_SIZE / largest_side}],
+        "initial": [{"twist_shape": {"axis": [0.0, 1.0, 0.0], "angle_deg": 60.0}},
+                    {"spin": {"axis": [1.0, 0.3, 0.0], "omega": 0.5}}],
+    }
 
 
 def build_mesh(spec, base_dir, where):
@@ -48,8 +87,8 @@ def build_mesh(spec, base_dir, where):
         edge_length = _typed(spec.get("edge_length", 0.05), 0.05, "edge_length")
         return tetrahedralize_surface(_existing_path(spec["surface"], base_dir, "surface"),
                                       edge_length)
-    except FemError as error:
-        raise FemError(f"{where}: {error}") from None
+    except FemError as error:   # the same kind of error, saying which mesh table it is
+        raise type(error)(f"{where}: {error}") from None
 
 
 def _from_generator(spec):

@@ -11,7 +11,8 @@ valid for FEM whatever the shape.
 import numpy as np
 from scipy import ndimage
 
-from fem.mesh import boundary_faces, dihedral_angles, prepare_mesh, signed_volumes
+from fem.mesh import (boundary_faces, check_tet_count, dihedral_angles, prepare_mesh,
+                      signed_volumes)
 
 # Cell corners are numbered by their offset bits: corner c sits at
 # (c & 1, (c >> 1) & 1, (c >> 2) & 1) cell widths from the cell's lowest corner.
@@ -42,6 +43,7 @@ def lattice_mesh(filled, origin, spacing, split, source):
     lattice nodes that some tet uses.
     """
     filled = np.asarray(filled, dtype=bool)
+    check_tet_count(int(filled.sum()) * split, source)
     cells = np.argwhere(filled)                                   # (c, 3) cell indices
     nodes_shape = np.array(filled.shape) + 1
     corners = cells[:, None, :] + CORNER_OFFSETS[None]           # (c, 8, 3) node indices
@@ -68,6 +70,9 @@ def implicit_mesh(sdf, lower, upper, spacing, source, min_dihedral_deg=12.0):
     """
     lower = np.asarray(lower, dtype=np.float64) - spacing     # one empty cell all round
     counts = np.ceil((np.asarray(upper) + spacing - lower) / spacing).astype(int)
+    lattice = int(np.prod(counts))
+    # Before the lattice is allocated (lattice_mesh counts the cells the shape fills, 5 tets each).
+    check_tet_count(lattice, source, f"a lattice of {lattice:,} cells (at least one tet each)")
     centres = lower + (np.argwhere(np.ones(counts, dtype=bool)) + 0.5) * spacing
     filled = manifold_cells(sdf(centres).reshape(counts) < 0)
     mesh = lattice_mesh(filled, lower, [spacing] * 3, 5, source)

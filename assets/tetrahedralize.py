@@ -18,11 +18,15 @@ from pathlib import Path
 import numpy as np
 
 from fem.errors import FemError
-from fem.mesh import prepare_mesh
+from fem.mesh import check_tet_count, prepare_mesh
 
 # Bump when the output for the same input changes (tool, options, file layout),
 # so old cache entries are no longer found.
 CACHE_FORMAT = "wildmeshing-0.4.1/v1"
+
+# Tets from an edge length (a fraction of the bounding-box diagonal): about
+# TETS_AT_5_PERCENT at 0.05 for a compact shape such as the bunny, growing as 1/edge^3.
+TETS_AT_5_PERCENT = 3000
 
 # True when the latest tetrahedralize_surface call was served from the cache.
 last_cache_hit = False
@@ -65,8 +69,10 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
     arrays = _load_cached(cached)
     last_cache_hit = arrays is not None
     if arrays is None:
+        estimate = round(TETS_AT_5_PERCENT * (0.05 / edge_length) ** 3)
+        check_tet_count(estimate, path, f"edge_length {edge_length} gives about {estimate:,} tets")
         start = time.perf_counter()
-        vertices, faces = _load_surface(path)
+        vertices, faces = load_surface(path)
         if progress:
             print(f"tetrahedralising {path.name} ({len(faces)} triangles) with wildmeshing, "
                   f"edge length {edge_length} x bbox diagonal ...", file=sys.stderr, flush=True)
@@ -101,7 +107,7 @@ def _store(cached, arrays):
               file=sys.stderr)
 
 
-def _load_surface(path):
+def load_surface(path):
     """(n, 3) float64 vertices and (f, 3) int32 triangles of a surface file."""
     import trimesh
 

@@ -10,6 +10,8 @@
 
 import os
 
+__version__ = "0.1.0"
+
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")   # before taichi is first imported
 
 from fem.errors import FemError  # noqa: E402
@@ -17,4 +19,4 @@ from fem.runtime import init  # noqa: E402
 from fem.scene import Scene, builtin_scenes, load_scene  # noqa: E402
 from fem.simulation import Simulation  # noqa: E402
 
-__all__ = ["FemError", "Scene", "Simulation", "builtin_scenes", "init", "load_scene"]
+__all__ = ["__version__", "FemError", "Scene", "Simulation", "builtin_scenes", "init", "load_scene"]

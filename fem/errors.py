@@ -11,3 +11,8 @@ class FemError(Exception):
     The message names the file (and line, where there is one) and says what is
     wrong, e.g. ``scenes/x.toml: body[0].material.E must be > 0, got -1``.
     """
+
+
+class SizeLimitError(FemError):
+    """A mesh larger than `fem.mesh.MAX_TETS`: probably a typo in a resolution, which would
+    exhaust the memory. The command line adds how to lift the limit (--allow-large)."""

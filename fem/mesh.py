@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError
+from fem.errors import FemError, SizeLimitError
 
 
 @dataclass
@@ -41,6 +41,13 @@ OUTWARD_FACES = np.array([[1, 3, 2], [0, 2, 3], [0, 3, 1], [0, 1, 2]])
 # A tet is degenerate when |volume| <= VOLUME_TOLERANCE * (bbox diagonal)^3:
 # relative, so the test means the same for a mesh in millimetres or in metres.
 VOLUME_TOLERANCE = 1e-12
+
+# The most tets one mesh may have; None lifts the limit. The engine keeps about
+# BYTES_PER_TET bytes per tet, so a million tets take about 0.4 GB (and a second or
+# more per step on a laptop), while a slip in a resolution (cells = [200, 200, 200]:
+# 40 million tets) would take the machine's whole memory.
+MAX_TETS = 1_000_000
+BYTES_PER_TET = 350
 
 WRITE_FORMATS = {".mesh": "medit", ".msh": "gmsh", ".vtu": "vtu", ".vtk": "vtk"}
 MESHIO_READ_EXTENSIONS = (".msh", ".vtk", ".vtu", ".node", ".ele")
@@ -78,6 +85,17 @@ def dihedral_angles(vertices, tets):
     return np.pi - np.arccos(np.clip(cosine, -1.0, 1.0))
 
 
+def check_tet_count(count, source, what=None):
+    """SizeLimitError naming `source` when a mesh of `count` tets would pass MAX_TETS.
+
+    what: how the count came about, for the message (default "{count} tets")."""
+    if MAX_TETS is not None and count > MAX_TETS:
+        what = what or f"{count:,} tets"
+        raise SizeLimitError(f"{source}: {what} is more than the limit of {MAX_TETS:,} tets per mesh "
+                             f"(fem.mesh.MAX_TETS; this would take about "
+                             f"{count * BYTES_PER_TET / 1e9:.1f} GB of memory)")
+
+
 def prepare_mesh(vertices, tets, source, *, tet_lines=None):
     """Check a raw mesh, orient every tet positively, and return a `TetMesh`.
 
@@ -104,6 +122,7 @@ def prepare_mesh(vertices, tets, source, *, tet_lines=None):
         raise FemError(f"{source}: tets must have shape (m, 4), got {tets.shape}")
     if len(tets) == 0:
         raise FemError(f"{source}: the mesh has no tetrahedra")
+    check_tet_count(len(tets), source)
 
     bad_vertex = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
     if len(bad_vertex):

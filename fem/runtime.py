@@ -23,8 +23,9 @@ def init(arch="cpu", precision="f32", debug=False):
         raise FemError(f"--arch: must be one of {ARCHES}, got {arch!r}")
     if precision not in PRECISIONS:
         raise FemError(f"--precision: must be one of {PRECISIONS}, got {precision!r}")
-    # auto takes CUDA only: a Vulkan "GPU" may be Mesa's software driver, slower than the CPU backend
-    wanted = {"cpu": ti.cpu, "gpu": ti.gpu, "auto": ti.cuda}[arch]
+    # auto takes CUDA only: a Vulkan "GPU" may be Mesa's software driver, slower than the CPU backend.
+    # gpu never probes OpenGL: on a machine without it, Taichi's probe ends the process (segfault).
+    wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
     # Taichi prints a banner on stdout; keep stdout for our own output
     with contextlib.redirect_stdout(io.StringIO()):

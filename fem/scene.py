@@ -5,6 +5,7 @@ initial conditions, impulses, solver settings); `fem.model.build_model` turns
 it into Taichi fields. The schema is documented in `scenes/README.md`.
 """
 
+import copy
 import difflib
 import tomllib
 from dataclasses import dataclass, field, replace
@@ -221,21 +222,34 @@ def builtin_scenes():
 
 
 def load_scene(ref, overrides=None):
-    """A Scene from a built-in name, a .toml path or a coursework *-scene.txt path.
+    """A Scene from a built-in name, a .toml path, a coursework *-scene.txt path, or a mesh file.
 
+    A mesh file (a surface: .obj .stl .ply .off, tetrahedralised and cached; or tets:
+    .mesh .msh .vtk .vtu .node .ele) is a one-body scene with the defaults of
+    `assets.mesh_file_scene`.
     overrides: ["key.path=value", ...] applied to a TOML scene before it is read,
     e.g. "solver.dt=0.01" or "body.soft.mesh.cells=[8, 8, 8]" (a body by name or index,
-    or * for every body).
+    or * for every body); paths in them are relative to the current folder.
     """
+    from assets import MESH_FILE_SUFFIXES, mesh_file_scene
+
     path = Path(ref)
-    if path.suffix == ".txt":
+    suffix = path.suffix.lower()
+    if suffix == ".txt":
         from fem.coursework import read_coursework_scene
         if overrides:
-            raise FemError(f"{path}: --set works on TOML scenes only")
+            raise FemError(f"{path}: --set works on TOML scenes and mesh files only")
         return read_coursework_scene(path)
-    if path.suffix != ".toml":
+    if suffix in MESH_FILE_SUFFIXES:
+        if not path.is_file():
+            raise FemError(f"{path}: no such mesh file")
+        return read_toml_scene(path, overrides or [], data=mesh_file_scene(path))
+    if suffix != ".toml":
         builtin = SCENES_DIR / f"{ref}.toml"
         if not builtin.exists():
+            if path.is_file():
+                known = ", ".join([".toml", "-scene.txt", *MESH_FILE_SUFFIXES])
+                raise FemError(f"{path}: not a scene or mesh file (known: {known})")
             names = list(builtin_scenes())
             hint = difflib.get_close_matches(str(ref), names, n=1)
             also = f" (did you mean {hint[0]!r}?)" if hint else f"; built-in scenes: {', '.join(names)}"
@@ -319,7 +333,11 @@ def check_type(value, kind, where):
 
 
 def apply_override(data, text):
-    """Set one "a.b.c=value" in the raw TOML data; value is TOML (a bare word counts as a string)."""
+    """Set one "a.b.c=value" in the raw TOML data; value is TOML (a bare word counts as a string).
+
+    A mesh path in it (a `file` or `surface` key) is relative to the current folder,
+    where the user typed it, not to the scene file's folder.
+    """
     key, sep, raw = text.partition("=")
     if not sep or not key.strip():
         raise FemError(f"--set {text!r}: expected KEY=VALUE, e.g. solver.dt=0.01")
@@ -345,22 +363,58 @@ def apply_override(data, text):
             node = node.setdefault(part, {})
     if not isinstance(node, dict):
         raise FemError(f"--set {key}: {'.'.join(parts[:-1])} is not a table")
+    if isinstance(value, dict):                   # body.0.mesh={file="my.mesh"}
+        for name in ("file", "surface"):
+            if isinstance(value.get(name), str) and value[name]:
+                value[name] = str(Path(value[name]).expanduser().absolute())
+    elif parts[-1] in ("file", "surface") and isinstance(value, str) and value:
+        value = str(Path(value).expanduser().absolute())
     node[parts[-1]] = value
 
 
-def read_toml_scene(path, overrides=()):
+def read_toml_scene(path, overrides=(), data=None):
+    """The Scene in a TOML file, with overrides ["key.path=value", ...] applied.
+
+    data: the scene's raw TOML data when it does not come from reading `path` (a
+    mesh file's one-body scene); `path` then names it in messages. A mistake that
+    only an override brings in is blamed on that override, not on the file.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise FemError(f"{path}: no such scene file")
-    try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as e:
-        raise FemError(f"{path}: not valid TOML: {e}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise FemError(f"{path}: cannot read: {e}") from None
-    for text in overrides:
-        apply_override(data, text)
+    if data is None:
+        if not path.is_file():
+            raise FemError(f"{path}: no such scene file")
+        try:
+            with open(path, "rb") as f:
+                data = tomllib.load(f)
+        except tomllib.TOMLDecodeError as e:
+            raise FemError(f"{path}: not valid TOML: {e}") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise FemError(f"{path}: cannot read: {e}") from None
+    if overrides:
+        def overridden(texts):
+            changed = copy.deepcopy(data)
+            for text in texts:
+                apply_override(changed, text)
+            return read_toml_scene(path, (), changed)
+
+        try:
+            return overridden(overrides)
+        except FemError as error:
+            if str(error).startswith("--set "):       # apply_override already names it
+                raise
+            try:
+                read_toml_scene(path, (), copy.deepcopy(data))
+            except FemError:
+                raise error from None             # the file is wrong on its own
+            for count in range(1, len(overrides) + 1):
+                try:
+                    overridden(overrides[:count])
+                except FemError as culprit:
+                    message = str(culprit).removeprefix(f"{path}: ")
+                    if message.startswith("--set "):
+                        raise
+                    raise type(culprit)(f"--set {overrides[count - 1]}: {message} (scene {path})") from None
+            raise
     top = Table(data, str(path), ["name", "description", "body", "effects", "solver",
                                   "initial", "impulse", "camera"])
     bodies_raw = data.get("body")

@@ -64,6 +64,10 @@ def test_export_writes_n_pictures_and_a_video_of_n_frames(workdir, first):
     video = list(iio.imiter(workdir / "a.mp4", plugin="FFMPEG"))
     assert len(video) == FRAMES
     assert video[0].shape == (SIZE[1], SIZE[0], 3)
+    # Real time: 3 steps of 0.02 s per frame play at 1 / 0.06 frames per second.
+    assert iio.immeta(workdir / "a.mp4", plugin="FFMPEG")["fps"] == pytest.approx(1 / 0.06, rel=1e-3)
+    # stderr is not a terminal here: no progress bar redrawn with carriage returns.
+    assert "\r" not in first.stderr
     # The last line on stdout says where the files are.
     assert first.stdout.strip().splitlines()[-1].endswith("a.mp4")
     assert not list(workdir.glob("**/*.part*"))
@@ -111,20 +115,40 @@ def test_refuses_a_non_empty_folder(workdir):
     assert [p.name for p in folder.iterdir()] == ["notes.txt"]
 
 
-def test_interrupted_export_leaves_only_whole_files(workdir):
+def test_interrupted_export_keeps_its_frames_and_a_video_of_them(workdir):
     command = [sys.executable, str(REPO / "main.py"), "export", "cube86", "--frames", "1000",
                "--size", "160x128", "--out", "cut", "--video", "cut.mp4"]
-    process = subprocess.Popen(command, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    process = subprocess.Popen(command, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               text=True)
     deadline = time.monotonic() + 100
     while len(frames(workdir / "cut")) < 3 and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     process.send_signal(signal.SIGTERM)
-    process.wait(timeout=30)
-    assert process.returncode == 130, process.stderr.read()
+    stderr = process.communicate(timeout=60)[1]
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr
     written = frames(workdir / "cut")
     assert 3 <= len(written) < 1000
     for path in written:
         Image.open(path).load()   # raises on a truncated file
-    assert not (workdir / "cut.mp4").exists()
+    video = list(iio.imiter(workdir / "cut.mp4", plugin="FFMPEG"))
+    assert len(written) - 1 <= len(video) <= len(written)
+    assert f"kept the {len(written)} complete frames" in stderr and "cut.mp4" in stderr
     leftovers = [p.name for p in workdir.glob("cut*/*") if not p.name.startswith("frame_")]
-    assert leftovers == [] and not list(workdir.glob("*.part*"))
+    assert leftovers == [] and not list(workdir.glob("**/*.part*"))
+
+
+def test_the_camera_backs_off_when_a_body_would_leave_the_picture():
+    from app.export import SAFE_AREA, auto_framed, widened
+
+    box = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+    camera = auto_framed(box, 4 / 3, None)
+    framed = (box[0], box[1])
+    assert widened(camera, framed, box * 0.9, 4 / 3)[0] is camera     # still in view: it stays put
+    grown = box * 3.0 + [1.0, 0.0, 0.0]                              # inflated and drifting
+    wider, framed = widened(camera, framed, grown, 4 / 3)
+    clip = np.c_[grown, np.ones(2)] @ wider.view_proj(4 / 3).T
+    assert (np.abs(clip[:, :2] / clip[:, 3:]) <= SAFE_AREA).all()
+    direction = lambda c: (c.eye - c.target) / np.linalg.norm(c.eye - c.target)  # noqa: E731
+    np.testing.assert_allclose(direction(wider), direction(camera))  # the same view, from further
+    assert widened(wider, framed, box, 4 / 3)[0] is wider            # and it never comes back closer

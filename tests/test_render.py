@@ -201,3 +201,69 @@ def test_colour_maps():
     palette = body_colors(np.arange(6))
     assert palette.shape == (6, 3) and len(np.unique(palette, axis=0)) == 6
     assert np.array_equal(body_colors([0]), body_colors([len(BODY_PALETTE)]))  # colours cycle
+
+
+# ---------------------------------------------------------------- floor, shadow, colour scales
+
+def test_no_floor_without_a_ground_only_the_backdrop(software, cube_scene):
+    from app.render import background
+    vertices, faces, colors, camera = cube_scene
+    image = software.render(vertices, faces, colors, camera, ground_y=None)
+    backdrop = np.round(background(WIDTH, HEIGHT) * 255)
+    away = ~reddish(image)
+    assert np.abs(image[away].astype(int) - backdrop[away]).max() <= 1
+
+
+def test_a_body_above_the_ground_casts_a_shadow_straight_below(software):
+    vertices, faces = cube(0.5)
+    vertices = vertices + [0.0, 1.0, 0.0]                  # floating 0.75 m above y = 0
+    colors = np.tile(RED, (len(vertices), 1))
+    camera = Camera(eye=[0.0, 4.0, 3.0], target=[0.0, 0.5, 0.0], near=0.1, far=50.0)
+    lit = software.render(vertices, faces, colors, camera, ground_y=0.0)
+    bare = software.render(vertices + [100.0, 0, 0], faces, colors, camera, ground_y=0.0)
+
+    def pixel(point):
+        clip = camera.view_proj(WIDTH / HEIGHT) @ np.append(point, 1.0)
+        return round((1 - clip[1] / clip[3]) / 2 * HEIGHT), round((clip[0] / clip[3] + 1) / 2 * WIDTH)
+
+    below = pixel([0.0, 0.0, 0.0])
+    assert not reddish(lit)[below]                                  # the floor, not the cube
+    assert lit[below].astype(int).sum() < 0.8 * bare[below].astype(int).sum()   # darker: the shadow
+
+
+def test_window_and_export_colour_with_the_same_scales():
+    from app import colors, viewer
+    assert viewer.VertexColoring is colors.VertexColoring
+    assert not hasattr(viewer, "VOLUME_RANGE")
+
+
+class FakeSimulation:
+    """What VertexColoring reads: two tets, one body, and per-tet values that can be set."""
+
+    def __init__(self, energy):
+        from types import SimpleNamespace
+        from fem.scene import Material
+        self.model = SimpleNamespace(tets_np=np.array([[0, 1, 2, 3], [1, 2, 3, 4]]), n_vertices=5,
+                                     vertex_body=np.zeros(5, int), bodies=[None])
+        self.scene = SimpleNamespace(bodies=[SimpleNamespace(material=Material(1e4, 0.3, 1000.0))])
+        self.energy = np.asarray(energy, float)
+
+    def tet_values(self):
+        return np.ones(2), self.energy
+
+
+def test_strain_scale_grows_to_the_scene_and_never_shrinks():
+    from app.colors import VertexColoring, nice_ceiling
+    sim = FakeSimulation([0.0, 0.0])
+    coloring = VertexColoring(sim, "strain")
+    start = coloring.vmax
+    coloring.colors(sim)
+    assert coloring.vmax == start                     # nothing strained: the initial scale
+    sim.energy = np.array([10.0, 730.0]) * start
+    top = coloring.colors(sim)
+    assert coloring.vmax == nice_ceiling(np.percentile(sim.energy, 99)) >= sim.energy.max() * 0.99
+    assert not np.allclose(top[0], top[4])            # not one saturated colour
+    sim.energy = np.zeros(2)
+    coloring.colors(sim)
+    assert coloring.vmax == nice_ceiling(np.percentile([10.0 * start, 730.0 * start], 99))
+    assert [nice_ceiling(v) for v in (1.0, 1.5, 3.3, 7.0, 0.0123)] == pytest.approx([1, 2, 5, 10, 0.02])

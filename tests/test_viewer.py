@@ -112,6 +112,34 @@ def test_zoom_scales_the_distance_and_the_clip_planes():
     assert (moved.near, moved.far) == pytest.approx((0.05, 50.0))
 
 
+# ---------------------------------------------------------------- compare labels, recordings
+
+def test_compare_labels_sit_over_their_copies():
+    from app.viewer import copy_labels
+    linear = np.array([[-2.0, 0, 0], [-1.0, 1.0, 0]])
+    corotational = linear + [3.0, 0, 0]
+    cam = Camera(eye=[0.5, 0.5, 8.0], target=[0.5, 0.5, 0.0], near=0.1, far=100.0)
+    (first, (x1, y1)), (second, (x2, y2)) = copy_labels(np.vstack([linear, corotational]), 2, cam, 4 / 3)
+    assert (first, second) == ("linear", "corotational")
+    assert x1 < 0.5 < x2 and y1 == pytest.approx(y2) and y1 < 0.5       # left, right, above the middle
+
+
+def test_a_recording_plays_at_the_speed_it_was_seen(monkeypatch):
+    from types import SimpleNamespace
+
+    from app import viewer
+    frames = []
+    window = SimpleNamespace(video=SimpleNamespace(append_data=frames.append), video_start=0.0,
+                             video_frames=0)
+    clock = iter([0.0, 0.5, 0.51, 2.0])                # seconds when four window frames were shown
+    monkeypatch.setattr(viewer.time, "perf_counter", lambda: next(clock))
+    for image in "abcd":
+        viewer.Viewer.record(window, image)
+    # At 30 frames per second each image fills the time since the one before; a quick one adds none.
+    assert len(frames) == int(2.0 * viewer.VIDEO_FPS) + 1
+    assert [frames.count(image) for image in "abcd"] == [1, 15, 0, 45]
+
+
 # ---------------------------------------------------------------- the real window
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -173,13 +201,32 @@ def wait_for(condition, timeout, what):
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
-def test_click_pushes_the_body_and_c_flips_the_method(display, cggs, tmp_path):
+# Two boxes at rest, no gravity: nothing moves until clicked.
+RESTING_BOXES = """
+name = "two resting boxes"
+[solver]
+dt = 0.01
+[[body]]
+name = "left"
+mesh = { generator = "box", size = [1.0, 1.0, 1.0], cells = [2, 2, 2] }
+material = { E = 1e4, nu = 0.3, density = 100.0 }
+position = [-0.8, 0.0, 0.0]
+[[body]]
+name = "right"
+mesh = { generator = "box", size = [1.0, 1.0, 1.0], cells = [2, 2, 2] }
+material = { E = 1e4, nu = 0.3, density = 100.0 }
+position = [0.8, 0.0, 0.0]
+"""
+
+
+def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
     import fem
     from app.viewer import initial_camera
     from PIL import Image
 
-    scene_file = cggs / "cylinder-scene.txt"
-    scene = fem.load_scene(scene_file)      # nothing moves in it until clicked
+    scene_file = tmp_path / "boxes.toml"
+    scene_file.write_text(RESTING_BOXES)
+    scene = fem.load_scene(scene_file)
     body = scene.bodies[1].mesh.vertices
     rest = np.concatenate([b.mesh.vertices for b in scene.bodies])
     target = pixel_of(body.mean(axis=0), initial_camera(rest, scene.camera, WIDTH, HEIGHT))

@@ -1,0 +1,277 @@
+"""softfem's command line: `python main.py COMMAND ...`, or `softfem COMMAND ...` once installed.
+
+    python main.py                        # the window (or, without a display, export the default scene)
+    python main.py help                   # the commands; `help COMMAND` for one of them
+    python main.py simulate cube86 --steps 50 --stats s.jsonl
+    python main.py simulate my_shape.obj  # your own surface or tet mesh, as a one-body scene
+    python main.py export epcot --compare --frames 150 --out out/epcot-compare --video out/epcot-compare.mp4
+    python main.py view bunny
+    python main.py bench --quick
+    python main.py scenes
+
+Bad input ends with one line `error: ...` on stderr and exit code 2, before any
+work starts where it can be found out then (a traceback only with --debug).
+Exit codes: 0 done, 1 the run failed (every step rejected), 2 bad input,
+130 interrupted (Ctrl-C or SIGTERM; complete files and rows are kept).
+"""
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from app import EXIT_BAD_INPUT, EXIT_INTERRUPTED
+from app.display import display_problem
+from app.files import check_output, interrupt_on_sigterm
+from fem.errors import FemError, SizeLimitError
+
+DEFAULT_SCENE = "epcot"
+DEFAULT_FRAMES = 150            # of the export a bare `main.py` makes without a display
+# What each command writes, as (attribute, option, "file" | "folder"): checked before any work.
+OUTPUTS = {
+    "simulate": [("stats", "--stats", "file")],
+    "export": [("out", "--out", "folder"), ("video", "--video", "file")],
+    "view": [("stats", "--stats", "file"), ("out", "--out", "folder")],
+    "bench": [("out", "--out", "folder")],
+}
+EPILOG = """\
+examples:
+  {prog}                                     the window; without a display, export the default scene
+  {prog} simulate my_shape.obj --steps 200   your own mesh (OBJ/STL/PLY/OFF surface, .mesh/.msh/.vtk tets)
+  {prog} export epcot --compare --frames 60  linear vs corotational as PNG frames in out/epcot-N
+  {prog} help export                         every option of one command
+
+SCENE is a built-in name (see `scenes`), a .toml scene file, a coursework *-scene.txt,
+or a mesh file. Exit codes: 0 done, 1 every step rejected, 2 bad input, 130 interrupted."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that reports a usage mistake as one `error:` line and exit code 2."""
+
+    def error(self, message):
+        print(f"error: {self.prog}: {message} (see --help)", file=sys.stderr)
+        sys.exit(EXIT_BAD_INPUT)
+
+
+def number(kind, low, inclusive=False):
+    """An argparse type: a finite `kind` (int or float) > low (>= low when inclusive)."""
+    def convert(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if not math.isfinite(value) or not (value >= low if inclusive else value > low):
+            raise argparse.ArgumentTypeError(f"must be {'>=' if inclusive else '>'} {low}, got {text}")
+        return value
+    return convert
+
+
+POSITIVE = number(float, 0)
+COUNT = number(int, 1, inclusive=True)
+STEPS = number(int, 0, inclusive=True)
+SCENE_HELP = "built-in name (see `scenes`), .toml scene, coursework *-scene.txt, or a mesh file"
+
+
+def add_common(p):
+    """Options every command that runs the engine shares."""
+    p.add_argument("--arch", default="cpu", choices=["cpu", "gpu", "auto"],
+                   help="Taichi backend; auto picks CUDA when present, else the CPU (default cpu)")
+    p.add_argument("--precision", default="f32", choices=["f32", "f64"], help="float type (default f32)")
+    p.add_argument("--debug", action="store_true", help="show tracebacks and enable Taichi's checks")
+
+
+def add_scene_options(p, scene_required=True):
+    """The scene and what may override it."""
+    if scene_required:
+        p.add_argument("scene", help=SCENE_HELP)
+    else:
+        p.add_argument("scene", nargs="?", default=DEFAULT_SCENE, help=f"{SCENE_HELP} (default {DEFAULT_SCENE})")
+    m = p.add_mutually_exclusive_group()
+    m.add_argument("--linear", dest="method", action="store_const", const="linear",
+                   help="every body uses linear FEM")
+    m.add_argument("--corotational", dest="method", action="store_const", const="corotational",
+                   help="every body uses corotational FEM")
+    p.add_argument("--solver", choices=["pcg", "jacobi"], help="linear solver (scene default: pcg)")
+    p.add_argument("--tol", type=POSITIVE, help="relative residual tolerance of the solve")
+    p.add_argument("--max-iters", type=COUNT, help="iteration cap of the solve")
+    p.add_argument("--step", choices=["newton", "single"],
+                   help="newton: minimise the incremental potential, energy never rises (default); "
+                        "single: one linear solve per step, rotations frozen (cheaper, can gain energy)")
+    p.add_argument("--dt", type=POSITIVE, help="time step, s")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene value, e.g. --set body.soft.mesh.cells=[8,8,8]; "
+                        "file paths in it are relative to the current folder")
+    p.add_argument("--allow-large", action="store_true",
+                   help="lift the size limits (a million tets per body, 8192 pixels a side)")
+    add_common(p)
+
+
+def build_parser(prog="main.py"):
+    parser = Parser(prog=prog, description="Linear and corotational soft bodies (tet FEM, Taichi).",
+                    epilog=EPILOG.format(prog=prog), formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--version", action=Version, help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    parser.commands = sub.choices    # {name: that command's parser}
+
+    p = sub.add_parser("simulate", help="run a scene without a window and summarise it")
+    add_scene_options(p)
+    p.add_argument("--steps", type=STEPS, default=100, help="number of steps (default 100)")
+    p.add_argument("--stats", metavar="FILE.jsonl",
+                   help="one JSON object per step ('-': to stdout, and the summary to stderr)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing stats file")
+
+    p = sub.add_parser("export", help="render frames (PNG) and a video without a display")
+    add_scene_options(p, scene_required=False)
+    p.add_argument("--frames", type=COUNT, default=120, help="number of frames (default 120)")
+    p.add_argument("--out", help="folder for the PNG frames (default: a new out/SCENE-N folder)")
+    p.add_argument("--video", metavar="FILE", help="also write a .mp4 (H.264) or .gif")
+    p.add_argument("--size", default="640x480", help="image size WxH (default 640x480, at most 8192 a side)")
+    p.add_argument("--speed", type=POSITIVE, default=1.0,
+                   help="simulated seconds per second of video (default 1: real time)")
+    p.add_argument("--fps", type=POSITIVE, help="video frame rate (default: about 30, exactly what plays "
+                                                "at --speed)")
+    p.add_argument("--steps-per-frame", type=COUNT,
+                   help="simulation steps per frame (default: what --speed and --fps ask for)")
+    p.add_argument("--compare", action="store_true", help="left copy linear, right copy corotational")
+    p.add_argument("--color", default="body", choices=["body", "volume", "strain"], help="colour mode")
+    p.add_argument("--renderer", default="auto", choices=["auto", "ggui", "software"],
+                   help="GGUI offscreen (needs Vulkan) or the built-in software renderer")
+    p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder / replace the video")
+
+    p = sub.add_parser("view", help="interactive window: click to push, c toggles corotation")
+    add_scene_options(p, scene_required=False)
+    p.add_argument("--compare", action="store_true", help="left copy linear, right copy corotational")
+    p.add_argument("--stats", metavar="FILE.jsonl", help="one JSON object per rendered frame, with events "
+                                                         "('-' for stdout)")
+    p.add_argument("--size", default="1280x720", help="window size WxH (default 1280x720)")
+    p.add_argument("--out", default="out", help="folder for screenshots (p) and recordings (v) (default out)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing stats file")
+
+    p = sub.add_parser("bench", help="what accuracy costs in time: tables and a plot")
+    p.add_argument("--quick", action="store_true", help="fewer scenes and steps (under 3 minutes)")
+    p.add_argument("--out", default="out/bench", help="output folder (default out/bench)")
+    p.add_argument("--scenes", nargs="+", help="scenes to measure (default: all seed scenes and boxes)")
+    p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
+    add_common(p)
+
+    sub.add_parser("scenes", help="list the built-in scenes")
+    p = sub.add_parser("help", help="list the commands, or show one command's options")
+    p.add_argument("topic", nargs="?", metavar="COMMAND", help="the command to explain")
+    return parser
+
+
+class Version(argparse.Action):
+    """--version, reading the version only when asked (importing the engine takes a second)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from fem import __version__
+        print(f"softfem {__version__}")
+        parser.exit()
+
+
+def program_name():
+    """'softfem' when run as the installed command, else 'main.py'."""
+    return "softfem" if Path(sys.argv[0]).name == "softfem" else "main.py"
+
+
+def default_arguments():
+    """What a bare `main.py` does: the window where a display is usable, otherwise an
+    export of the default scene into a folder of its own (out/epcot, out/epcot-2, ...)."""
+    problem = display_problem()
+    if problem is None:
+        return ["view"]
+    out = fresh_folder(DEFAULT_SCENE)
+    print(f"no window ({problem.split(';')[0]}): exporting {DEFAULT_SCENE} (linear vs corotational) "
+          f"to {out}/", file=sys.stderr)
+    return ["export", DEFAULT_SCENE, "--compare", "--frames", str(DEFAULT_FRAMES), "--out", str(out),
+            "--video", str(out / f"{DEFAULT_SCENE}.mp4")]
+
+
+def fresh_folder(name, parent="out"):
+    """parent/name, or parent/name-2, -3, ...: the first that does not exist or is an empty folder,
+    so that earlier output is never touched."""
+    out, copy = Path(parent) / name, 1
+    while out.exists() and (not out.is_dir() or any(out.iterdir())):
+        copy += 1
+        out = Path(parent) / f"{name}-{copy}"
+    return out
+
+
+def dispatch(args, parser):
+    if args.command == "help":
+        commands = parser.commands
+        if args.topic is None:
+            parser.print_help()
+        elif args.topic in commands:
+            commands[args.topic].print_help()
+        else:
+            parser.error(f"help: no command {args.topic!r}; commands: {', '.join(commands)}")
+        return 0
+    if args.command == "scenes":
+        import fem
+        for name, description in fem.builtin_scenes().items():
+            print(f"{name:10s} {description}")
+        print("\nor a file: a .toml scene, a coursework *-scene.txt, a surface mesh (.obj .stl .ply .off) "
+              "or a tet mesh (.mesh .msh .vtk .vtu)")
+        return 0
+    if args.command == "export" and args.out is None:
+        args.out = str(fresh_folder(Path(args.scene).stem))
+    for attribute, option, kind in OUTPUTS.get(args.command, []):
+        value = getattr(args, attribute, None)
+        if value is not None and value != "-":
+            check_output(value, option, kind)
+    if args.command == "simulate":
+        from app import simulate
+        return simulate.run(args)
+    if args.command == "export":
+        from app import export
+        return export.run(args)
+    if args.command == "view":
+        from app import viewer
+        return viewer.run(args)
+    if args.command == "bench":
+        from app import bench
+        return bench.run(args)
+    raise AssertionError(args.command)
+
+
+def main(argv=None) -> int:
+    """Run the command line `argv` (default sys.argv[1:]); returns the exit code."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(program_name())
+    commands = parser.commands
+    if not argv:
+        argv = default_arguments()
+    elif not any(word in commands for word in argv) and not {"-h", "--help", "--version"} & set(argv):
+        # Flags alone (`main.py --linear`) start nothing: they belong to a command.
+        example = " ".join(argv if not argv[0].startswith("-") else [DEFAULT_SCENE, *argv])
+        parser.error(f"no command given; commands: {', '.join(commands)}; "
+                     f"e.g. `{parser.prog} export {example}`")
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.error(f"no command given; commands: {', '.join(commands)}")
+
+    from fem import mesh
+    limit = mesh.MAX_TETS
+    try:
+        if getattr(args, "allow_large", False):
+            mesh.MAX_TETS = None
+        with interrupt_on_sigterm():
+            return dispatch(args, parser)
+    except FemError as e:
+        if args.debug:
+            raise
+        hint = "; --allow-large lifts the limit" if isinstance(e, SizeLimitError) else ""
+        print(f"error: {e}{hint}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        # The commands say what they kept; this is an interruption before they wrote anything.
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        mesh.MAX_TETS = limit
