@@ -250,8 +250,11 @@ def test_no_progress_bar_in_a_log(monkeypatch):
 # ---------------------------------------------------------------- interruptions
 
 def start(argv, folder):
+    """`main.py argv` in folder, able to get Ctrl-C even when the tests themselves run in the
+    background (a shell starts background jobs with SIGINT ignored, and children inherit that)."""
     return subprocess.Popen([sys.executable, str(ROOT / "main.py"), *argv], cwd=folder,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def wait_for(condition, process, timeout=120):
