@@ -21,10 +21,10 @@ import taichi as ti
 import fem
 from app import EXIT_INTERRUPTED, device, orbit, picking
 from app.camera import Camera, auto_frame
+from app.colors import VertexColoring
 from app.display import display_problem
 from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
 from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
-from app.colors import VertexColoring
 from app.render import AMBIENT, FrameBuffers, background, build_frame
 
 PANEL_WIDTH = 0.29              # of the window's width, on the right
