@@ -21,14 +21,14 @@ import taichi as ti
 import fem
 from app import EXIT_INTERRUPTED, device, orbit, picking
 from app.camera import Camera, auto_frame
+from app.colors import VertexColoring
 from app.display import display_problem
 from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
 from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
-from app.colors import VertexColoring
 from app.render import AMBIENT, FrameBuffers, background, build_frame
 
 PANEL_WIDTH = 0.29              # of the window's width, on the right
-LABEL_SIZE = (0.14, 0.05)       # of the window: the title boxes naming the copies of --compare
+LABEL_SIZE = (0.14, 0.04)       # of the window: the title boxes naming the copies of --compare
 MAX_STEPS_PER_FRAME = 8
 VIDEO_FPS = 30
 MARKER_SECONDS = 0.8            # how long a click's hit point and arrow stay drawn
@@ -152,6 +152,8 @@ class Viewer:
         self.material_edit = None
         self.set_color_mode(self.coloring.mode if self.coloring else "body")
         self.reset_view()
+        self.labels = copy_labels(self.x, int(self.body_starts[self.twins]), self.camera,
+                                  self.width / self.height) if self.twins else []
         self.stats = sim.stats()
         self.events.append({"type": "scene", "scene": str(ref), "name": scene.name,
                             "methods": self.methods()})
@@ -406,12 +408,11 @@ class Viewer:
         return self.sim.scene.effects.ground
 
     def draw_copy_labels(self):
-        """In compare mode, "linear" and "corotational" over the copies, following them."""
-        if not self.twins:
-            return
-        split = int(self.body_starts[self.twins])
-        for label, (x, y) in copy_labels(self.x, split, self.camera, self.width / self.height):
-            with self.gui.sub_window(label, x - LABEL_SIZE[0] / 2, y - LABEL_SIZE[1], *LABEL_SIZE) as g:
+        """In compare mode, "linear" and "corotational" at the top of the view, over where the
+        copies start. (GGUI places a sub-window once and then leaves it where it is, so the
+        labels cannot follow the copies; at the top, a growing copy does not cover them.)"""
+        for label, x in self.labels:
+            with self.gui.sub_window(label, x - LABEL_SIZE[0] / 2, 0.01, *LABEL_SIZE) as g:
                 g.text("")
 
     def draw_marker(self):
@@ -580,16 +581,17 @@ def initial_camera(positions, scene_camera, width, height, compare=False) -> Cam
 
 
 def copy_labels(positions, split, camera, aspect):
-    """[("linear", (x, y)), ("corotational", (x, y))]: where to label the two copies of
-    --compare, as fractions of the window from its top-left corner, just above the middle of
-    each copy's top. positions (n, 3): the linear copies' vertices come before `split`."""
+    """[("linear", x), ("corotational", x)]: where to label the two copies of --compare, as
+    fractions of the window's width from its left edge: over the middle of each copy as seen.
+    positions (n, 3): the linear copies' vertices come before `split`."""
     labels = []
     for label, points in (("linear", positions[:split]), ("corotational", positions[split:])):
         lo, hi = points.min(axis=0), points.max(axis=0)
-        top = np.array([(lo[0] + hi[0]) / 2, hi[1], (lo[2] + hi[2]) / 2, 1.0])
-        clip = camera.view_proj(aspect) @ top
-        x, y = clip[:2] / clip[3]
-        labels.append((label, (float(np.clip((x + 1) / 2, 0, 1)), float(np.clip((1 - y) / 2, 0, 1)))))
+        corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                            for z in (lo[2], hi[2])])
+        clip = corners @ camera.view_proj(aspect).T
+        x = (clip[:, 0] / clip[:, 3] + 1) / 2
+        labels.append((label, float(np.clip((x.min() + x.max()) / 2, 0, 1))))
     return labels
 
 

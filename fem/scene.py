@@ -413,7 +413,8 @@ def read_toml_scene(path, overrides=(), data=None):
                     message = str(culprit).removeprefix(f"{path}: ")
                     if message.startswith("--set "):
                         raise
-                    raise type(culprit)(f"--set {overrides[count - 1]}: {message} (scene {path})") from None
+                    scene = f"built-in scene {path.stem}" if path.parent == SCENES_DIR else f"scene {path}"
+                    raise type(culprit)(f"--set {overrides[count - 1]}: {message} ({scene})") from None
             raise
     top = Table(data, str(path), ["name", "description", "body", "effects", "solver",
                                   "initial", "impulse", "camera"])

@@ -41,3 +41,11 @@ def make_scene(mesh, method="corotational", E=1e4, nu=0.3, density=1000.0, effec
         body.pinned = np.asarray(pinned)
     return Scene("test", [body], effects=effects or Effects(),
                  solver=solver or SolverSettings(dt=0.01, tolerance=1e-10, max_iterations=500))
+
+
+def fan_tets(vertices, faces, edge_length, path):
+    """Stands in for wildmeshing (assets.tetrahedralize._run_wildmeshing) on a convex
+    surface: one tet per triangle and the centre, instantly. Returns (vertices, tets)."""
+    centre = len(vertices)
+    return (np.vstack([vertices, vertices.mean(axis=0)]),
+            np.hstack([faces, np.full((len(faces), 1), centre)]))

@@ -8,7 +8,6 @@ must reach a separate process.
 import contextlib
 import io
 import json
-import os
 import signal
 import subprocess
 import sys

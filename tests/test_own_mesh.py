@@ -11,6 +11,7 @@ import io
 import numpy as np
 import pytest
 import trimesh
+from conftest import fan_tets
 
 import assets
 import fem
@@ -59,15 +60,9 @@ def test_a_surface_runs_in_one_command_tetrahedralised_and_cached(here):
     assert [i.kind for i in scene.initial] == ["twist_shape", "spin"]
 
 
-def fake_wildmeshing(vertices, faces, edge_length, path):
-    """Tets filling a convex surface, one per triangle with its centre: instant, for format checks."""
-    centre = len(vertices)
-    return np.vstack([vertices, vertices.mean(axis=0)]), np.hstack([faces, np.full((len(faces), 1), centre)])
-
-
 @pytest.mark.parametrize("suffix", [".stl", ".ply", ".off"])
 def test_every_surface_format_is_read(here, monkeypatch, suffix):
-    monkeypatch.setattr(tetrahedralize, "_run_wildmeshing", fake_wildmeshing)
+    monkeypatch.setattr(tetrahedralize, "_run_wildmeshing", fan_tets)   # instant: formats only
     scene = fem.load_scene(ball(here / f"ball{suffix}"))
     assert scene.name == "ball" and len(scene.bodies[0].mesh.tets) > 100
     assert largest_side(scene) == pytest.approx(1.0, rel=1e-6)

@@ -15,9 +15,9 @@ import re
 import shlex
 from pathlib import Path
 
-import numpy as np
 import pytest
 import trimesh
+from conftest import fan_tets
 
 import fem
 import main
@@ -111,12 +111,6 @@ def clone(tmp_path_factory):
     return folder
 
 
-def quick_wildmeshing(vertices, faces, edge_length, path):
-    """A tet per surface triangle and the centre: my_shape.obj is convex (test_own_mesh.py
-    runs wildmeshing itself)."""
-    return np.vstack([vertices, vertices.mean(axis=0)]), np.hstack([faces, np.full((len(faces), 1), len(vertices))])
-
-
 @pytest.mark.parametrize("readme, words", ALL, ids=[f"{r}: {shlex.join(w)}" for r, w in ALL])
 def test_command_works_in_the_order_shown(clone, monkeypatch, readme, words):
     command, argv = shlex.join(words), argv_of(words)
@@ -125,7 +119,7 @@ def test_command_works_in_the_order_shown(clone, monkeypatch, readme, words):
         pytest.skip(f"{command}: {reason}")
     monkeypatch.chdir(clone)
     monkeypatch.setenv("FEM_CACHE_DIR", str(clone / ".cache"))
-    monkeypatch.setattr(tetrahedralize, "_run_wildmeshing", quick_wildmeshing)
+    monkeypatch.setattr(tetrahedralize, "_run_wildmeshing", fan_tets)   # test_own_mesh runs the real one
     if argv == []:                       # the bare command: the export made without a display
         monkeypatch.delenv("DISPLAY", raising=False)
         monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

@@ -119,9 +119,12 @@ def test_compare_labels_sit_over_their_copies():
     linear = np.array([[-2.0, 0, 0], [-1.0, 1.0, 0]])
     corotational = linear + [3.0, 0, 0]
     cam = Camera(eye=[0.5, 0.5, 8.0], target=[0.5, 0.5, 0.0], near=0.1, far=100.0)
-    (first, (x1, y1)), (second, (x2, y2)) = copy_labels(np.vstack([linear, corotational]), 2, cam, 4 / 3)
+    (first, x1), (second, x2) = copy_labels(np.vstack([linear, corotational]), 2, cam, 4 / 3)
     assert (first, second) == ("linear", "corotational")
-    assert x1 < 0.5 < x2 and y1 == pytest.approx(y2) and y1 < 0.5       # left, right, above the middle
+    for points, x in ((linear, x1), (corotational, x2)):    # over the middle of each copy
+        clip = np.c_[points, np.ones(2)] @ cam.view_proj(4 / 3).T
+        assert x == pytest.approx(np.mean((clip[:, 0] / clip[:, 3] + 1) / 2), abs=0.02)
+    assert x1 < 0.5 < x2
 
 
 def test_a_recording_plays_at_the_speed_it_was_seen(monkeypatch):
