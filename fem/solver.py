@@ -221,6 +221,8 @@ class ImplicitSolver:
         if self.has_ground:
             self.ground_reaction(cM, cK, newton)
         bad = self.check_finite(state_out.x, state_out.v)
+        if not math.isfinite(rho):                            # a NaN in state_in: nothing to trust
+            bad = max(bad, 1)
         if bad == 0 and self.has_ground:
             self.ground_contact(state_out.x, state_out.v)
         limited = 0
