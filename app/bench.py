@@ -32,7 +32,8 @@ import taichi as ti
 from tqdm import tqdm
 
 import fem
-from app import direct
+import scenes
+from app import device, direct
 from app.files import atomic_open, refuse_overwrite
 from assets.generators import box
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
@@ -58,7 +59,7 @@ class Plan:
 
 
 def full_plan():
-    return Plan([*fem.builtin_scenes(), "box1k", "box10k", "box50k"], (0.5, 1.0, 2.0), 2, 45.0)
+    return Plan([*scenes.builtin_scenes(), "box1k", "box10k", "box50k"], (0.5, 1.0, 2.0), 2, 45.0)
 
 
 QUICK = Plan(["cube86", "box1k"], (0.5, 1.0), 2, 10.0)
@@ -114,7 +115,7 @@ def box_scene(name, k):
 
 
 def make_scene(ref):
-    return box_scene(ref, BOXES[ref]) if ref in BOXES else fem.load_scene(ref)
+    return box_scene(ref, BOXES[ref]) if ref in BOXES else scenes.load_scene(ref)
 
 
 # ---------------------------------------------------------------- running
@@ -469,7 +470,7 @@ def write(results, out):
 def run(args, plan=None):
     """main.py bench; `plan` (for tests) replaces the quick or full plan."""
     refuse_overwrite(args.out, args.overwrite)
-    backend = fem.init(args.arch, args.precision, debug=args.debug)
+    backend = device.start(args)["backend"]
     plan = plan or (QUICK if args.quick else full_plan())
     if args.scenes:
         plan = replace(plan, scenes=args.scenes)

@@ -213,8 +213,8 @@ def dispatch(args, parser):
             parser.error(f"help: no command {args.topic!r}; commands: {', '.join(commands)}")
         return 0
     if args.command == "scenes":
-        import fem
-        for name, description in fem.builtin_scenes().items():
+        import scenes
+        for name, description in scenes.builtin_scenes().items():
             print(f"{name:10s} {description}")
         print("\nor a file: a .toml scene, a coursework *-scene.txt, a surface mesh (.obj .stl .ply .off) "
               "or a tet mesh (.mesh .msh .vtk .vtu)")

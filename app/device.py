@@ -13,6 +13,7 @@ import re
 import sys
 
 import fem
+from fem.errors import FemError
 
 # VkPhysicalDeviceType: VK_PHYSICAL_DEVICE_TYPE_INTEGRATED_GPU = 1, DISCRETE_GPU = 2, CPU = 4.
 VULKAN_CPU_TYPE = 4
@@ -24,7 +25,12 @@ SOFTWARE_NAMES = re.compile(r"llvmpipe|lavapipe|softpipe|swiftshader", re.IGNORE
 def start(args) -> dict:
     """fem.init as the command line asks (--arch, --precision, --debug); unless the
     backend is the CPU by request, one line on stderr says which device was picked."""
-    backend = fem.init(args.arch, args.precision, debug=args.debug)
+    try:
+        backend = fem.init(args.arch, args.precision, debug=args.debug)
+    except FemError:
+        if args.arch != "gpu":
+            raise
+        raise FemError("--arch gpu: no GPU backend found on this machine (use --arch cpu or auto)") from None
     found = describe(backend)
     if args.arch != "cpu":
         print(report(args.arch, found), file=sys.stderr)

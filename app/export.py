@@ -41,6 +41,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 import fem
+import scenes
 from app import EXIT_INTERRUPTED, device
 from app.camera import Camera, auto_frame
 from app.colors import VertexColoring
@@ -99,7 +100,7 @@ def run(args) -> int:
         refuse_overwrite(video, args.overwrite)
 
     device.start(args)
-    scene = fem.load_scene(args.scene, overrides=args.set)
+    scene = scenes.load_scene(args.scene, overrides=args.set)
     sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
                          solver=args.solver, dt=args.dt, tolerance=args.tol,
                          max_iterations=args.max_iters, step=args.step)

@@ -10,6 +10,7 @@ import statistics
 import sys
 
 import fem
+import scenes
 from app import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, device
 from app.files import atomic_open, refuse_overwrite
 from app.progress import Progress
@@ -18,7 +19,7 @@ from fem.mesh import mesh_quality
 
 def build_simulation(args):
     """The Simulation the common options ask for (scene, method, solver overrides, --set)."""
-    scene = fem.load_scene(args.scene, overrides=args.set)
+    scene = scenes.load_scene(args.scene, overrides=args.set)
     return fem.Simulation(scene, method=args.method, solver=args.solver, dt=args.dt,
                           tolerance=args.tol, max_iterations=args.max_iters, step=args.step)
 

@@ -19,6 +19,7 @@ import numpy as np
 import taichi as ti
 
 import fem
+import scenes
 from app import EXIT_INTERRUPTED, device, orbit, picking
 from app.camera import Camera, auto_frame
 from app.colors import VertexColoring
@@ -97,7 +98,7 @@ def parse_size(text):
 class Viewer:
     def __init__(self, args, width, height):
         self.args, self.width, self.height = args, width, height
-        names = list(fem.builtin_scenes())
+        names = list(scenes.builtin_scenes())
         self.scene_refs = names if args.scene in names else [args.scene] + names
         try:
             self.window = ti.ui.Window("softfem", (width, height), vsync=False)
@@ -131,7 +132,7 @@ class Viewer:
         """Build the simulation of a scene and compile its kernels before the first frame."""
         self.show_loading(ref)
         args = self.args
-        scene = fem.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None)
+        scene = scenes.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None)
         if args.compare:
             # A gap as wide as the scene, so that a linear copy growing as it turns stays clear of its twin.
             width = np.ptp(np.concatenate([b.mesh.vertices for b in scene.bodies])[:, 0])

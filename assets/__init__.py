@@ -41,7 +41,7 @@ MESH_FILE_MATERIAL = {"E": 5e4, "nu": 0.4, "density": 1000.0}
 def mesh_file_scene(path):
     """The raw TOML data of a one-body scene made of the mesh file at `path` (a surface
     .obj/.stl/.ply/.off, tetrahedralised and cached, or a tet mesh), with the defaults above;
-    fem.load_scene reads it like a scene file, so --set changes any of it."""
+    scenes.load_scene reads it like a scene file, so --set changes any of it."""
     path = Path(path).absolute()
     if path.suffix.lower() in SURFACE_SUFFIXES:
         mesh = {"surface": str(path), "edge_length": MESH_FILE_EDGE_LENGTH}

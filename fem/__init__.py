@@ -1,8 +1,9 @@
 """softfem: linear and corotational tetrahedral FEM with an implicit, matrix-free solver.
 
     import fem
+    from scenes import load_scene
     fem.init(arch="cpu", precision="f32")
-    sim = fem.Simulation(fem.load_scene("cube86"))
+    sim = fem.Simulation(load_scene("cube86"))
     for _ in range(50):
         sim.step()
     print(sim.stats()["volume_ratio"], sim.positions().shape)
@@ -16,7 +17,7 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")   # before taichi is fi
 
 from fem.errors import FemError  # noqa: E402
 from fem.runtime import init  # noqa: E402
-from fem.scene import Scene, builtin_scenes, load_scene  # noqa: E402
+from fem.scene import Scene  # noqa: E402
 from fem.simulation import Simulation  # noqa: E402
 
-__all__ = ["__version__", "FemError", "Scene", "Simulation", "builtin_scenes", "init", "load_scene"]
+__all__ = ["__version__", "FemError", "Scene", "Simulation", "init"]

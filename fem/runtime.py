@@ -20,9 +20,9 @@ def init(arch="cpu", precision="f32", debug=False):
     Taichi, which invalidates every field made before (tests use this).
     """
     if arch not in ARCHES:
-        raise FemError(f"--arch: must be one of {ARCHES}, got {arch!r}")
+        raise FemError(f"arch must be one of {ARCHES}, got {arch!r}")
     if precision not in PRECISIONS:
-        raise FemError(f"--precision: must be one of {PRECISIONS}, got {precision!r}")
+        raise FemError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     # auto takes CUDA only: a Vulkan "GPU" may be Mesa's software driver, slower than the CPU backend.
     # gpu never probes OpenGL: on a machine without it, Taichi's probe ends the process (segfault).
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
@@ -33,7 +33,7 @@ def init(arch="cpu", precision="f32", debug=False):
                 offline_cache=True, log_level=ti.ERROR)
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
-        raise FemError("--arch gpu: no GPU backend found on this machine (use --arch cpu or auto)")
+        raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
     _current.update(arch=backend, precision=precision)
     return backend
 

@@ -176,11 +176,11 @@ def test_set_mistakes_are_blamed_on_set_not_on_the_scene_file(here):
 
 
 def test_set_paths_are_relative_to_the_current_folder(here):
-    import fem
+    import scenes
     from tools.cases import CUBE_MESH
 
     (here / "statue.mesh").write_text(CUBE_MESH)
-    scene = fem.load_scene("fertility", overrides=['body.*.mesh={file="statue.mesh"}', "body.*.scale=2.0"])
+    scene = scenes.load_scene("fertility", overrides=['body.*.mesh={file="statue.mesh"}', "body.*.scale=2.0"])
     assert [len(b.mesh.tets) for b in scene.bodies] == [5, 5]
     assert all(b.mesh.source == str(here / "statue.mesh") for b in scene.bodies)
     code, _, err = run("simulate", "fertility", "--set", 'body.low.mesh={file="missing.mesh"}')

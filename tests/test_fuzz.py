@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from fem.coursework import read_coursework_scene
 from fem.errors import FemError
 from fem.mesh import read_tet_mesh
-from fem.scene import read_toml_scene
+from assets import build_mesh
+from fem.scene_file import read_toml_scene
 from tools.cases import COURSEWORK_SCENE, CUBE_MESH, TOML_SCENE
 
 FUZZ = settings(max_examples=400, derandomize=True, deadline=None,
@@ -101,7 +102,7 @@ def test_toml_reader_raises_only_fem_errors(tmp_path, text):
     (tmp_path / "cube.mesh").write_text(CUBE_MESH)
     path = tmp_path / "s.toml"
     path.write_text(text)
-    only_fem_errors(read_toml_scene, path)
+    only_fem_errors(read_toml_scene, path, build_mesh)
 
 
 @settings(max_examples=60, derandomize=True, deadline=None,
@@ -113,4 +114,4 @@ def test_readers_survive_binary_files(tmp_path, data):
     (tmp_path / "s.toml").write_bytes(data)
     only_fem_errors(read_tet_mesh, tmp_path / "cube.mesh")
     only_fem_errors(read_coursework_scene, tmp_path / "c-scene.txt")
-    only_fem_errors(read_toml_scene, tmp_path / "s.toml")
+    only_fem_errors(read_toml_scene, tmp_path / "s.toml", build_mesh)

@@ -15,6 +15,7 @@ from conftest import fan_tets
 
 import assets
 import fem
+import scenes
 import main
 from assets import tetrahedralize
 from fem.mesh import TetMesh, write_tet_mesh
@@ -51,7 +52,7 @@ def test_a_surface_runs_in_one_command_tetrahedralised_and_cached(here):
     code, out, err = run("simulate", "ball.obj", "--steps", "3")
     assert code == 0, err
     assert "tetrahedralising ball.obj" in err and "scene ball:" in out
-    scene = fem.load_scene("ball.obj")
+    scene = scenes.load_scene("ball.obj")
     assert tetrahedralize.last_cache_hit                  # the second time comes from the cache
     assert len(scene.bodies) == 1 and scene.bodies[0].method == "corotational"
     assert largest_side(scene) == pytest.approx(assets.MESH_FILE_SIZE, rel=0.01)   # as its surface
@@ -63,7 +64,7 @@ def test_a_surface_runs_in_one_command_tetrahedralised_and_cached(here):
 @pytest.mark.parametrize("suffix", [".stl", ".ply", ".off"])
 def test_every_surface_format_is_read(here, monkeypatch, suffix):
     monkeypatch.setattr(tetrahedralize, "_run_wildmeshing", fan_tets)   # instant: formats only
-    scene = fem.load_scene(ball(here / f"ball{suffix}"))
+    scene = scenes.load_scene(ball(here / f"ball{suffix}"))
     assert scene.name == "ball" and len(scene.bodies[0].mesh.tets) > 100
     assert largest_side(scene) == pytest.approx(1.0, rel=1e-6)
 
@@ -72,7 +73,7 @@ def test_every_surface_format_is_read(here, monkeypatch, suffix):
 def test_a_tet_mesh_file_runs_as_it_is(here, suffix):
     box = assets.box(size=(2.0, 1.0, 0.5), cells=(4, 2, 1))
     write_tet_mesh(TetMesh(box.vertices + 5.0, box.tets), here / f"part{suffix}")
-    scene = fem.load_scene(f"part{suffix}", overrides=["body.0.material.E=1e5"])
+    scene = scenes.load_scene(f"part{suffix}", overrides=["body.0.material.E=1e5"])
     body = scene.bodies[0]
     assert len(body.mesh.tets) == len(box.tets) and body.material.E == 1e5
     np.testing.assert_allclose(np.ptp(body.mesh.vertices, axis=0), [1.0, 0.5, 0.25])   # 2 m -> 1 m

@@ -49,8 +49,8 @@ def in_another_folder(installed, tmp_path, command):
 
 
 def test_fem_imports_from_any_folder_with_its_scenes(installed, tmp_path):
-    code = ("import fem; print(fem.__file__); print(sorted(fem.builtin_scenes())); "
-            "print(len(fem.load_scene('cube86').bodies))")
+    code = ("import fem, scenes; print(fem.__file__); print(sorted(scenes.builtin_scenes())); "
+            "print(len(scenes.load_scene('cube86').bodies))")
     run = in_another_folder(installed, tmp_path, [sys.executable, "-c", code])
     assert run.returncode == 0, run.stderr
     where, scenes, bodies = run.stdout.splitlines()

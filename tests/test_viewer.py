@@ -223,13 +223,13 @@ position = [0.8, 0.0, 0.0]
 
 
 def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
-    import fem
+    import scenes
     from app.viewer import initial_camera
     from PIL import Image
 
     scene_file = tmp_path / "boxes.toml"
     scene_file.write_text(RESTING_BOXES)
-    scene = fem.load_scene(scene_file)
+    scene = scenes.load_scene(scene_file)
     body = scene.bodies[1].mesh.vertices
     rest = np.concatenate([b.mesh.vertices for b in scene.bodies])
     target = pixel_of(body.mean(axis=0), initial_camera(rest, scene.camera, WIDTH, HEIGHT))
