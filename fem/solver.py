@@ -122,7 +122,7 @@ class ImplicitSolver:
         self.vertex_body = ti.field(ti.i32, n)
         self.body_floor = ti.field(ti.f64, nb)                # (N s)^2: round-off floor of |grad_b|^2
         self.body_scale = ti.field(ti.f64, nb)                # (N s)^2: s_b^2 of this step
-        self.body_weight = ti.field(float, nb)                # 1 / (tol^2 s_b^2)
+        self.body_weight = ti.field(float, nb)                # 1 / (tol^2 s_b^2 + floor_b)
         self.body_gradient = ti.field(ti.f64, nb)             # |grad_b E|^2
         self.body_change = ti.field(ti.f64, nb)               # |a d_b|_M^2 of the last Newton iteration, J
         self.body_momentum = ti.field(ti.f64, nb)             # |v_b|_M^2, J
@@ -489,7 +489,7 @@ class ImplicitSolver:
         for b in self.body_gradient:
             self.body_gradient[b] = 0.0
             if ti.static(first):
-                self.body_scale[b] = self.body_floor[b]
+                self.body_scale[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.rhs:
             m = self.model.mass[i]
@@ -508,13 +508,15 @@ class ImplicitSolver:
 
     @ti.kernel
     def gradient_norm(self, tolerance: ti.f64, first: ti.template()) -> ti.f64:
-        """sum_b |grad_b|^2 / (tol^2 s_b^2): <= 1 exactly when every body has converged."""
+        """sum_b |grad_b|^2 / (tol^2 s_b^2 + floor_b): <= 1 exactly when every body has
+        converged, relative to its own scale s_b or below its round-off floor."""
         rho = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in self.body_gradient:
             if ti.static(first):
-                self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]), float)
-            rho += self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b])
+                self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]
+                                                     + self.body_floor[b]), float)
+            rho += self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b])
         return rho
 
     def gradient(self, v0, x, v, dt, tolerance, first):
@@ -542,8 +544,8 @@ class ImplicitSolver:
 
     @ti.kernel
     def velocity_change(self, a: float, tolerance: ti.f64) -> ti.f64:
-        """sum_b |a d_b|_M^2 / (tol^2 (|v_b|_M^2 + floor_b)): <= 1 exactly when no body's velocity
-        moved by more than tol of its size in the last Newton iteration."""
+        """sum_b |a d_b|_M^2 / (tol^2 |v_b|_M^2 + floor_b): <= 1 exactly when no body's velocity
+        moved by more than tol of its size (or by round-off) in the last Newton iteration."""
         for b in self.body_change:
             self.body_change[b], self.body_momentum[b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
@@ -555,7 +557,7 @@ class ImplicitSolver:
         change = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in self.body_change:
-            change += self.body_change[b] / (tolerance * tolerance * (self.body_momentum[b] + self.body_speed_floor[b]))
+            change += self.body_change[b] / (tolerance * tolerance * self.body_momentum[b] + self.body_speed_floor[b])
         return change
 
     # Backward Euler with a non-convex energy (corotated elasticity is not convex: a compressed

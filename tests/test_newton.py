@@ -1,0 +1,118 @@
+"""The implicit step as a minimisation: exact on linear bodies, a line search that only
+goes down, per-body stopping, and no work for a body at rest."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+from conftest import box_mesh, make_scene
+from test_elastic import assembled_matrix
+
+import fem
+from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
+from scenes import load_scene
+
+
+def test_one_newton_iteration_on_a_linear_body_is_the_exact_linear_solve(f64):
+    """(M + dt D + dt^2 K) v = M v_n - dt K (x_n - X) + dt M g, D = alpha M + beta K,
+    solved by scipy on an independently assembled K."""
+    dt, alpha, beta, g = 0.05, 0.3, 0.02, np.array([0.0, -9.81, 0.0])
+    effects = Effects(gravity=tuple(g), alpha=alpha, beta=beta)
+    sim = fem.Simulation(make_scene(box_mesh(3), "linear", E=5e4, nu=0.4, effects=effects,
+                                    solver=SolverSettings(dt=dt, tolerance=1e-12, max_iterations=2000)))
+    rng = np.random.default_rng(3)
+    X = sim.positions()
+    x0, v0 = X + 0.05 * rng.standard_normal(X.shape), rng.standard_normal(X.shape)
+    sim.state.load(x0, v0)
+
+    info = sim.step()
+
+    M = assembled_matrix(sim, 1.0, 0.0, X)
+    K = assembled_matrix(sim, 0.0, 1.0, X)
+    A = (1 + dt * alpha) * M + (dt * beta + dt**2) * K
+    rhs = M @ v0.ravel() - dt * K @ (x0 - X).ravel() + dt * M @ np.tile(g, len(X))
+    v = spla.spsolve(A.tocsc(), rhs).reshape(-1, 3)
+    assert info["newton_iters"] == 1 and info["line_search_steps"] == 0
+    np.testing.assert_allclose(sim.velocities(), v, rtol=0, atol=1e-9 * np.abs(v).max())
+    np.testing.assert_allclose(sim.positions(), x0 + dt * v, rtol=0, atol=1e-9 * np.abs(v).max() * dt + 1e-14)
+
+
+def spinning_incompressible(method="corotational", nu=0.4999, omega=15.0, dt=0.5):
+    """The former expected failure: a near-incompressible cube spinning fast at a large dt."""
+    body = Body("rubber", box_mesh(2), Material(1e4, nu, 1000.0), method)
+    spin = Initial(Selection(0), "spin", (np.array([0.0, 0.0, 1.0]), omega))
+    return Scene("spin", [body], effects=Effects(alpha=0.1, beta=0.1), initial=[spin],
+                 solver=SolverSettings(dt=dt, tolerance=1e-6))
+
+
+def test_the_line_search_never_accepts_an_increase_of_E(f64):
+    """E is evaluated at the start iterate and at every trial; each accepted iterate's E is at
+    most the one before it (Armijo), on a case that needs halvings."""
+    sim = fem.Simulation(spinning_incompressible())
+    solver = sim.solver
+    energy, accept, step = solver.energy, solver.accept, solver.step
+    paths, last = [], []        # per step: E of the start iterate, then of each accepted iterate
+
+    def logged_energy(*args):
+        value = energy(*args)
+        if not paths[-1]:
+            paths[-1].append(value)
+        last[:] = [value]
+        return value
+
+    def logged_accept(v):
+        paths[-1].append(last[0])           # the trial just evaluated is the one accepted
+        accept(v)
+
+    def logged_step(*args):
+        paths.append([])
+        return step(*args)
+
+    solver.energy, solver.accept, solver.step = logged_energy, logged_accept, logged_step
+    halvings = sum(sim.step()["line_search_steps"] for _ in range(12))
+    assert halvings > 0, "the case must exercise the line search"
+    assert sum(len(path) - 1 for path in paths) >= len(paths)   # Newton iterations were accepted
+    for path in paths:
+        assert all(b <= a for a, b in zip(path, path[1:])), path
+
+
+def two_bodies(quiet_only=False):
+    """A quiet body squashed to 80 % and released, and (unless quiet_only) beside it a
+    body whose corner is hit at 1e5 m/s."""
+    quiet = Body("quiet", box_mesh(2), Material(1e4, 0.3, 1000.0), "corotational")
+    squash = Initial(Selection(0), "squash", (np.array([0.0, 1.0, 0.0]), 0.8))
+    bodies, initial = [quiet], [squash]
+    if not quiet_only:
+        bodies.append(Body("hit", place_mesh(box_mesh(2), (5.0, 0.0, 0.0)), Material(1e4, 0.3, 1000.0),
+                           "corotational"))
+        initial.append(Initial(Selection(1, vertices=np.array([0])), "velocity", (np.array([1e5, 0.0, 0.0]),)))
+    return Scene("pair", bodies, initial=initial, solver=SolverSettings(dt=0.02, tolerance=1e-4))
+
+
+def test_a_quiet_body_is_solved_as_well_beside_a_huge_impulse(f64):
+    """Per-body stopping: the hit body's huge residual does not set the scale for its quiet
+    neighbour, which ends where it ends when simulated alone."""
+    pair, alone = fem.Simulation(two_bodies()), fem.Simulation(two_bodies(quiet_only=True))
+    n = alone.model.n_vertices
+    start = alone.positions()
+    for _ in range(5):
+        pair.step()
+        alone.step()
+    moved = np.abs(alone.positions() - start).max()
+    assert moved > 1e-2
+    assert np.abs(pair.positions()[:n] - alone.positions()).max() < 1e-2 * moved
+
+
+def test_a_body_at_rest_costs_no_solver_iterations(f64):
+    sim = fem.Simulation(make_scene(box_mesh(3), "corotational", E=1e6, nu=0.45,
+                                    solver=SolverSettings(dt=0.02, tolerance=1e-4)))
+    infos = [sim.step() for _ in range(5)]
+    assert [i["solver_iters"] for i in infos] == [0] * 5
+    assert all(i["converged"] for i in infos)
+
+
+def test_the_coursework_cylinder_at_rest_costs_no_solver_iterations(cggs):
+    fem.init("cpu", "f32")
+    sim = fem.Simulation(load_scene(cggs / "cylinder-scene.txt"))
+    infos = [sim.step() for _ in range(5)]
+    fem.init("cpu", "f64")
+    assert [i["solver_iters"] for i in infos] == [0] * 5
