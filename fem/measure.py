@@ -8,7 +8,7 @@ import numpy as np
 import taichi as ti
 
 from fem.elastic import edge_matrix, energy_density
-from fem.rotation import polar_rotation
+from fem.rotation import newton_rotation, polar_rotation, quaternion_matrix
 from fem.runtime import serial_loops
 
 
@@ -16,12 +16,15 @@ from fem.runtime import serial_loops
 class Measure:
     """Per-body volume, energies and inverted tets of a state; energies summed in float64.
 
+    start: a quaternion field (m,) to start each tet's rotation from (the solver's last
+    rotations: near the answer, so Newton steps certify it and the SVD is rarely needed).
     gravity: (gx, gy, gz) m/s^2 or None; the gravitational potential is -sum m g.x (J),
     zero at the origin.
     """
 
-    def __init__(self, model, gravity=None):
+    def __init__(self, model, start, gravity=None):
         self.model = model
+        self.start = start              # quaternions (x, y, z, w) per tet: where rotations are sought from
         n_bodies = len(model.bodies)
         self.gravity = gravity or (0.0, 0.0, 0.0)
         self.volume = ti.field(ti.f64, n_bodies)        # m^3
@@ -33,34 +36,40 @@ class Measure:
         self.vertex_body = ti.field(ti.i32, model.n_vertices)
         self.tet_volume_ratio = ti.field(float, model.n_tets)
         self.tet_energy_density = ti.field(float, model.n_tets)   # J/m^3
+        self.needs_svd = ti.field(ti.i8, model.n_tets)              # 1: R from the SVD
         self.serial_tets = serial_loops(model.n_tets, "tets")
         self.serial_vertices = serial_loops(model.n_vertices, "vertices")
         self.tet_body.from_numpy(model.tet_body)
         self.vertex_body.from_numpy(model.vertex_body)
 
     @ti.kernel
-    def measure(self, x: ti.template(), v: ti.template()):
+    def measure_tets(self, x: ti.template(), v: ti.template()) -> ti.i32:
+        """Volumes, inverted tets, kinetic and potential energy, and the elastic energy of
+        every tet whose rotation Newton steps certify from the solver's last rotation;
+        returns how many tets are left for `measure_svd_tets`."""
         for b in self.volume:
             self.volume[b], self.elastic[b], self.kinetic[b], self.potential[b] = 0.0, 0.0, 0.0, 0.0
             self.inverted[b] = 0
+        left = 0
         ti.loop_config(serialize=self.serial_tets)
         for e in self.tet_body:
-            t = self.model.tets[e]
-            F = edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]]) @ self.model.Bm[e]
-            R = ti.Matrix.identity(float, 3)
-            if self.model.corotational[e]:
-                R = polar_rotation(F)
-            W = ti.cast(self.model.rest_volume[e], ti.f64)
+            F = self.deformation(x, e)
             J = F.determinant()
-            psi = energy_density(ti.cast(R.transpose() @ F, ti.f64), ti.cast(self.model.mu[e], ti.f64),
-                                 ti.cast(self.model.lam[e], ti.f64), 1.0)
             b = self.tet_body[e]
-            self.volume[b] += ti.cast(J, ti.f64) * W
-            self.elastic[b] += psi * W
+            self.volume[b] += ti.cast(J, ti.f64) * ti.cast(self.model.rest_volume[e], ti.f64)
             if J <= 0:
                 self.inverted[b] += 1
             self.tet_volume_ratio[e] = J
-            self.tet_energy_density[e] = ti.cast(psi, float)
+            self.needs_svd[e] = 0
+            R = ti.Matrix.identity(float, 3)
+            if self.model.corotational[e]:
+                q, converged = newton_rotation(F, self.start[e])
+                R = quaternion_matrix(q)
+                if not converged:
+                    self.needs_svd[e] = 1
+                    left += 1
+            if not self.needs_svd[e]:
+                self.add_energy(e, F, R)
         g = ti.Vector(self.gravity, dt=ti.f64)
         ti.loop_config(serialize=self.serial_vertices)
         for i in self.vertex_body:
@@ -68,6 +77,33 @@ class Measure:
             b = self.vertex_body[i]
             self.kinetic[b] += 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr()
             self.potential[b] -= m * g.dot(ti.cast(x[i], ti.f64))
+        return left
+
+    @ti.kernel
+    def measure_svd_tets(self, x: ti.template()):
+        """The elastic energy of the tets left by measure_tets, R from the SVD (`polar_rotation`)."""
+        ti.loop_config(serialize=self.serial_tets)
+        for e in self.tet_body:
+            if self.needs_svd[e]:
+                F = self.deformation(x, e)
+                self.add_energy(e, F, polar_rotation(F))
+
+    @ti.func
+    def deformation(self, x: ti.template(), e):
+        t = self.model.tets[e]
+        return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]]) @ self.model.Bm[e]
+
+    @ti.func
+    def add_energy(self, e, F, R):
+        psi = energy_density(ti.cast(R.transpose() @ F, ti.f64), ti.cast(self.model.mu[e], ti.f64),
+                             ti.cast(self.model.lam[e], ti.f64), 1.0)
+        self.elastic[self.tet_body[e]] += psi * ti.cast(self.model.rest_volume[e], ti.f64)
+        self.tet_energy_density[e] = ti.cast(psi, float)
+
+    def measure(self, x, v):
+        """Fill the per-body and per-tet numbers for positions x and velocities v (fields)."""
+        if self.measure_tets(x, v) > 0:
+            self.measure_svd_tets(x)
 
     def read(self, x, v):
         """Per-body numbers as plain Python: volume ratio, energies (J), inverted tets.

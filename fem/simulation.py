@@ -54,7 +54,7 @@ class Simulation:
         self.model = build_model(scene)
         self.state, self.spare = State(self.model.n_vertices), State(self.model.n_vertices)
         self.solver = ImplicitSolver(self.model, scene.effects, settings)
-        self.measure = Measure(self.model, scene.effects.gravity)
+        self.measure = Measure(self.model, self.solver.quaternions, scene.effects.gravity)
         offsets = [b.vertices.start for b in self.model.bodies]
         self.impulses = []
         for k, imp in enumerate(scene.impulses):
@@ -132,39 +132,43 @@ class Simulation:
 
     # ------------------------------------------------------------ the engine's maths, for checks
 
-    def _scratch(self, x):
-        """A State holding positions x ((n, 3) numpy; None: the current ones) and zero velocities."""
+    def _work(self, x=None):
+        """The solver's work state holding positions x ((n, 3) numpy) and zero velocities, or
+        (x None) a copy of the current state: every kernel then runs on the same fields."""
+        work = self.solver
         if x is None:
-            return self.state
-        self.spare.load(np.asarray(x, np.float64), np.zeros((self.model.n_vertices, 3)))
-        return self.spare
+            work.copy_state(self.state.x, self.state.v, work.x, work.v)
+        else:
+            work.x.from_numpy(np.asarray(x, np.float64))
+            work.v.fill(0.0)
+        return work
 
     def rotations(self, x=None):
         """(m, 3, 3) the rotation R of every tet at positions x, as the solver extracts it
         (identity for linear tets); leaves the solver's rotations there."""
-        self.solver.update_rotations(self._scratch(x).x, self.model.any_corotational)
+        self.solver.update_rotations(self._work(x).x, self.model.any_corotational)
         rotated_Bm = self.solver.rotated_Bm.to_numpy().astype(np.float64)
         Dm = np.linalg.inv(self.solver.model.Bm.to_numpy().astype(np.float64))
         return np.transpose(Dm @ rotated_Bm, (0, 2, 1))            # R = (Dm Bm R^T)^T
 
     def forces(self, x=None):
         """(n, 3) elastic forces f(x) = -grad Psi(x) (N) at positions x (None: the current ones)."""
-        state = self._scratch(x)
-        self.solver.update_rotations(state.x, self.model.any_corotational)
-        self.solver.elastic_forces(state.x, self.solver.Ap)
+        work = self._work(x)
+        self.solver.update_rotations(work.x, self.model.any_corotational)
+        self.solver.elastic_forces(work.x, self.solver.Ap)
         return self.solver.Ap.to_numpy().astype(np.float64)
 
     def energy(self, x=None):
         """Elastic energy Psi(x) (J, float64) at positions x (None: the current ones)."""
-        state = self._scratch(x)
-        return self.measure.read(state.x, state.v)["elastic_energy"]
+        work = self._work(x)
+        return self.measure.read(work.x, work.v)["elastic_energy"]
 
     def apply_matrix(self, u, cM=None, cK=None, x=None):
         """H u = cM M u + cK K(R) u for a (n, 3) numpy u, with the rotations at positions x
         (None: the current ones); (cM, cK) default to the step's."""
         if cM is None:
             cM, cK = self.coefficients
-        self.solver.update_rotations(self._scratch(x).x, self.model.any_corotational)
+        self.solver.update_rotations(self._work(x).x, self.model.any_corotational)
         return self.solver.apply_matrix(np.asarray(u, np.float64), cM, cK)
 
     # ------------------------------------------------------------ reading
@@ -182,10 +186,12 @@ class Simulation:
         out = {"step": self.steps, "t": self.t, "solver": self.settings.method}
         out.update(self.last)
         out["corotational"] = [b.method == "corotational" for b in self.model.bodies]   # now, after toggles
-        out.update(self.measure.read(self.state.x, self.state.v))
+        work = self._work()
+        out.update(self.measure.read(work.x, work.v))
         return out
 
     def tet_values(self):
         """Per-tet (volume ratio J, strain energy density J/m^3), for colouring; (m,) each."""
-        self.measure.measure(self.state.x, self.state.v)
+        work = self._work()
+        self.measure.measure(work.x, work.v)
         return self.measure.tet_volume_ratio.to_numpy(), self.measure.tet_energy_density.to_numpy()

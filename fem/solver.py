@@ -39,7 +39,7 @@ import taichi as ti
 
 from fem.elastic import (corner_forces, edge_matrix, energy_density, is_finite, linear_stress,
                          stiffness_block)
-from fem.rotation import polar_rotation, quaternion_of, rotation_of
+from fem.rotation import newton_rotation, polar_rotation, quaternion_matrix, quaternion_of
 from fem.runtime import epsilon, serial_loops
 
 ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
@@ -111,7 +111,10 @@ class ImplicitSolver:
         self.damping_Bm = ti.Matrix.field(3, 3, float, m if self.has_stiffness_damping else 1)  # Bm R_n^T
         self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
         self.twist = ti.field(float, m)                       # twist stiffness of the Newton matrix, Pa
+        self.needs_svd = ti.field(ti.i8, m)                   # 1: the tet's R comes from the SVD
         self.corner = vec(4 * m)                              # per-corner values before the gather
+        self.x0, self.v0 = vec(n), vec(n)                     # the step's start x_n (m), v_n (m/s)
+        self.x, self.v = vec(n), vec(n)                       # the iterate x = x_n + dt v, v
         self.velocity = vec(n)                                # v of the accepted Newton iterate, m/s
         self.rhs = vec(n)                                     # -grad E at that iterate (unfiltered), N s
         self.solution = vec(n)                                # the Newton direction d, m/s
@@ -163,7 +166,9 @@ class ImplicitSolver:
         """One backward Euler step from state_in into state_out; returns a StepInfo.
 
         state_in is never written. When the result is not finite, state_out holds garbage
-        and the caller keeps state_in (a rejected step is a step not swapped in).
+        and the caller keeps state_in (a rejected step is a step not swapped in). The step
+        works on the solver's own copies (x0, v0: the start; x, v: the iterate), so every
+        kernel is compiled once, not once per State.
         """
         start = time.perf_counter()
         settings, model = self.settings, self.model
@@ -173,64 +178,67 @@ class ImplicitSolver:
         self.refresh(cM, cK, dt)
         self.dt[None] = dt
 
-        rotation_ms = self.update_rotations(state_in.x, corotational)   # R(x_n)
+        self.copy_state(state_in.x, state_in.v, self.x0, self.v0)
+        self.copy_state(state_in.x, state_in.v, self.x, self.v)
+        rotation_ms = self.update_rotations(self.x, corotational)    # R(x_n)
         if newton:
-            self.body_energy(state_in.x, state_in.v, self.energy_before)
-        self.start_iterate(state_in.x, state_in.v, state_out.x, state_out.v, dt)
+            self.body_energy(self.x, self.v, self.energy_before)     # x, v = x_n, v_n still
+        self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
         if self.has_stiffness_damping:
             self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
         if corotational or self.preconditioner_key != (cM, cK):
             self.build_preconditioner(cM, cK)                 # linear: built once, as H never changes
             self.preconditioner_key = None if corotational else (cM, cK)
-        rho = self.gradient(state_in.v, state_out.x, state_out.v, dt, settings.tolerance, True)
-        energy = self.energy(state_in.v, state_out.x, state_out.v, dt) if newton else 0.0
+        rho = self.gradient(self.v0, self.x, self.v, dt, settings.tolerance, True)
+        energy = self.energy(self.v0, self.x, self.v, dt) if newton else 0.0
 
         newton_iters = solver_iters = halvings = 0
         settled = False
         while rho > 1.0 and newton_iters < (settings.max_newton if newton else 1):
             target = 1.0 if not newton else max(1.0, FORCING ** 2 * rho)
-            solver_iters += self.solve(state_in.v, cM, cK, target, warm=newton_iters == 0)
+            solver_iters += self.solve(self.v0, cM, cK, target, warm=newton_iters == 0)
             newton_iters += 1
             if not newton:
                 rho = float(self.rr[None])                    # the linear solve's own residual
-                self.try_step(state_in.x, state_out.x, state_out.v, 1.0, dt)
+                self.try_step(self.x0, self.x, self.v, 1.0, dt)
                 break
             slope = self.slope()                              # grad E . d (J), < 0 for a descent direction
             a, accepted = 1.0, False
             for _ in range(MAX_HALVINGS + 1):
-                self.try_step(state_in.x, state_out.x, state_out.v, a, dt)
-                rotation_ms += self.update_rotations(state_out.x, True)
-                trial = self.energy(state_in.v, state_out.x, state_out.v, dt)
+                self.try_step(self.x0, self.x, self.v, a, dt)
+                rotation_ms += self.update_rotations(self.x, True)
+                trial = self.energy(self.v0, self.x, self.v, dt)
                 if trial <= energy + ARMIJO * a * slope:
                     accepted = True
                     break
                 a *= 0.5
                 halvings += 1
             if not accepted:                                  # no decrease left at this precision
-                self.try_step(state_in.x, state_out.x, state_out.v, 0.0, dt)
-                rotation_ms += self.update_rotations(state_out.x, True)
+                self.try_step(self.x0, self.x, self.v, 0.0, dt)
+                rotation_ms += self.update_rotations(self.x, True)
                 break
             energy = trial
-            self.accept(state_out.v)
+            self.accept(self.v)
             change = self.velocity_change(a, settings.newton_tolerance)
-            rho = self.gradient(state_in.v, state_out.x, state_out.v, dt, settings.tolerance, False)
+            rho = self.gradient(self.v0, self.x, self.v, dt, settings.tolerance, False)
             if change <= 1.0:                                 # every body's velocity has settled
                 settled = True
                 break
 
         if self.has_ground:
             self.ground_reaction(cM, cK, newton)
-        bad = self.check_finite(state_out.x, state_out.v)
+        bad = self.check_finite(self.x, self.v)
         if not math.isfinite(rho):                            # a NaN in state_in: nothing to trust
             bad = max(bad, 1)
         if bad == 0 and self.has_ground:
-            self.ground_contact(state_out.x, state_out.v)
+            self.ground_contact(self.x, self.v)
         limited = 0
         if bad == 0 and newton:
             if not self.has_ground:
-                self.restore_momentum(state_in.v, state_in.x, state_out.x, state_out.v, dt)
-            self.body_energy(state_out.x, state_out.v, self.energy_after)
-            limited = self.limit_energy(state_in.x, state_out.x, state_out.v)
+                self.restore_momentum(self.v0, self.x0, self.x, self.v, dt)
+            self.body_energy(self.x, self.v, self.energy_after)
+            limited = self.limit_energy(self.x0, self.x, self.v)
+        self.copy_state(self.x, self.v, state_out.x, state_out.v)
         ti.sync()
         residual = settings.tolerance * math.sqrt(max(rho, 0.0))
         wall_ms = 1e3 * (time.perf_counter() - start)
@@ -258,7 +266,9 @@ class ImplicitSolver:
         if not corotational:
             return 0.0
         start = time.perf_counter()
-        self.extract_rotations(x, self.settings.rotations == "svd", int(self.settings.step == "newton"))
+        newton = int(self.settings.step == "newton")
+        if self.extract_rotations(x, self.settings.rotations == "svd", newton) > 0:
+            self.svd_rotations(x, newton)
         self.rotated = True
         ti.sync()
         return 1e3 * (time.perf_counter() - start)
@@ -326,31 +336,53 @@ class ImplicitSolver:
         return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]])
 
     @ti.kernel
-    def extract_rotations(self, x: ti.template(), svd: ti.template(), newton: ti.i32):
+    def extract_rotations(self, x: ti.template(), svd: ti.template(), newton: ti.i32) -> ti.i32:
         """R = polar rotation of F for every corotational tet, kept as rotated_Bm = Bm R^T.
 
-        svd=False: warm-started iteration from last time's R, falling back to the SVD where it
-        does not converge or the tet is inverted; svd=True: the SVD for every tet (the reference).
+        svd=False: warm-started Newton steps from last time's R; a tet where they do not
+        certify their answer (a start far off, an inverted tet) is left for `svd_rotations`.
+        svd=True: every corotational tet is left for it (the reference).
         newton=1 also sets each tet's twist stiffness (below); 0 leaves it 0 (the one-solve step).
+        Returns how many tets were left. The SVD lives in its own kernel, compiled only when a
+        run first needs it: it is most of the compile time.
         """
+        left = 0
         ti.loop_config(serialize=self.serial_tets)
         for e in self.rotated_Bm:
+            self.needs_svd[e] = 0
             if self.model.corotational[e]:
-                F = self.edges(x, e) @ self.model.Bm[e]
-                R, q = ti.Matrix.identity(float, 3), self.quaternions[e]
                 if ti.static(svd):
-                    R = polar_rotation(F)
-                    q = quaternion_of(R)
+                    self.needs_svd[e] = 1
+                    left += 1
                 else:
-                    R, q = rotation_of(F, q)
-                self.quaternions[e] = q
-                self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
-                self.twist[e] = newton * twist_stiffness((R.transpose() @ F).trace(), self.model.mu[e],
-                                                         self.model.lam[e])
+                    F = self.edges(x, e) @ self.model.Bm[e]
+                    q, converged = newton_rotation(F, self.quaternions[e])
+                    self.set_rotation(e, F, quaternion_matrix(q), q, newton)
+                    if not converged:
+                        self.needs_svd[e] = 1
+                        left += 1
             else:
                 self.twist[e] = 0.0
                 self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
                 self.rotated_Bm[e] = self.model.Bm[e]
+        return left
+
+    @ti.kernel
+    def svd_rotations(self, x: ti.template(), newton: ti.i32):
+        """The polar rotation from the SVD (`polar_rotation`) for the tets left by extract_rotations."""
+        ti.loop_config(serialize=self.serial_tets)
+        for e in self.rotated_Bm:
+            if self.needs_svd[e]:
+                F = self.edges(x, e) @ self.model.Bm[e]
+                R = polar_rotation(F)
+                self.set_rotation(e, F, R, quaternion_of(R), newton)
+
+    @ti.func
+    def set_rotation(self, e, F, R, q, newton):
+        self.quaternions[e] = q                               # the next warm start
+        self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
+        self.twist[e] = newton * twist_stiffness((R.transpose() @ F).trace(), self.model.mu[e],
+                                                 self.model.lam[e])
 
     # The Newton matrix R Ke R^T misses the curvature of Psi when a tet turns: the "twist"
     # modes (skew parts of R^T dF) get none, where the exact Hessian of the corotated energy
@@ -464,6 +496,13 @@ class ImplicitSolver:
     @ti.func
     def gravity_vector(self):
         return ti.Vector(self.gravity, dt=float)
+
+    @ti.kernel
+    def copy_state(self, x_from: ti.template(), v_from: ti.template(), x_to: ti.template(),
+                   v_to: ti.template()):
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in x_from:
+            x_to[i], v_to[i] = x_from[i], v_from[i]
 
     @ti.kernel
     def start_iterate(self, x0: ti.template(), v0: ti.template(), x: ti.template(), v: ti.template(),
