@@ -16,11 +16,12 @@ the same start for the same simulated time:
 A variant's error is its RMS position distance to the reference at checkpoint times
 that every dt divides. The reference has an error of its own, O(dt_ref) like any
 backward Euler run: the distance between it and a second run at 2 dt_ref estimates
-it (for a first-order method the two differ by about the reference's own error), and
-errors near that floor are measured too low: a variant at dt shows about
-(dt - dt_ref) / dt of its true error, half of it at dt = 2 dt_ref. A dt_ref of the
-smallest variant dt / 8 would lower the floor 4 times but make the reference 4 times
-dearer, more than all the variants together; the scene's dt / 8 keeps a full run
+it (for a first-order method the two differ by about the reference's own error). That
+floor is where the error axis bottoms out; errors near it are measured too low (a variant
+at dt shows about (dt - dt_ref) / dt of its true error, half of it at dt = 2 dt_ref), so a
+variant meets the error goal only when its error plus the floor does. dt_ref = the
+smallest variant dt / 8 would lower the floor 4 times, but the reference, already the
+dearest run of a scene, would cost 4 times more: the scene's dt / 8 keeps a full run
 affordable.
 
 A variant's cost is the wall time of a step, measured after warm-up (Taichi compiles
@@ -112,8 +113,8 @@ class Variant:
         return "exact" if self.method == "linear" else {"newton": "Newton", "single": "single"}[self.step]
 
 
-REFERENCES = [Variant("corotational", "reference", "newton", k / REFERENCE_REFINEMENT, REFERENCE_SETTINGS["tolerance"])
-              for k in (1, 2)]
+REFERENCES = [Variant("corotational", "reference", "newton", k / REFERENCE_REFINEMENT,
+                      REFERENCE_SETTINGS["tolerance"]) for k in (1, 2)]   # the reference, and at 2 dt_ref
 
 
 def variants():
@@ -221,13 +222,13 @@ def run_variant(sim, variant, times, plan):
         volume_drift = max(volume_drift, max(abs(r - 1) for r in stats["volume_ratio"]))
         if k in checkpoint_steps:
             snapshots[checkpoint_steps[k]] = x
-        projected_s = (time.perf_counter() - start) * n_steps / k
-        if variant.solver != "reference" and k >= plan.warmup_steps + MIN_TIMED_STEPS and projected_s > plan.budget_s:
+        may_stop = variant.solver != "reference" and k >= plan.warmup_steps + MIN_TIMED_STEPS
+        if may_stop and (time.perf_counter() - start) * n_steps / k > plan.budget_s:   # would take too long
             break
     energy = sum_energy(stats)
     memory = solver.memory_bytes if variant.solver == "direct" else field_bytes(sim.model, sim.state, sim.solver)
-    return {"infos": infos, "snapshots": snapshots, "volume_drift": volume_drift, "run_s": time.perf_counter() - start,
-            "energy_drift": energy / energy0 - 1 if energy0 > 0 else None,
+    return {"infos": infos, "snapshots": snapshots, "run_s": time.perf_counter() - start,
+            "volume_drift": volume_drift, "energy_drift": energy / energy0 - 1 if energy0 > 0 else None,
             "memory_bytes": memory, "stopped_early": len(infos) < n_steps}
 
 
@@ -252,8 +253,8 @@ def summarise(variant, run, reference, sim, times, plan):
         "method": variant.method, "solver": variant.solver, "step": variant.step, "dt": dt,
         "dt_factor": variant.dt_factor, "tolerance": variant.tolerance or None,
         "iterations": variant.iterations or None,
-        "steps": len(infos), "timed_steps": len(timed), "stopped_early": run["stopped_early"], "run_s": run["run_s"],
-        "first_step_ms": infos[0]["wall_ms"],
+        "steps": len(infos), "timed_steps": len(timed), "stopped_early": run["stopped_early"],
+        "run_s": run["run_s"], "first_step_ms": infos[0]["wall_ms"],
         "ms_median": statistics.median(ms), "ms_min": min(ms), "ms_max": max(ms),
         "s_per_sim_s": statistics.median(ms) / dt / 1000,
         "rotation_ms": statistics.median(i["rotation_ms"] for i in timed),
@@ -366,14 +367,28 @@ def frontier(scene):
             if not any(o["s_per_sim_s"] < r["s_per_sim_s"] and final_error(o) <= final_error(r) for o in rows)]
 
 
-def spread(values, unit):
-    """' (median over n scenes, lo to hi unit)' when there are several values."""
-    return f" (median over {len(values)} scenes, {min(values):.2g} to {max(values):.2g}{unit})" if len(values) > 1 else ""
+def spread(values, spec=".2f"):
+    """'lo to hi' of several values ('' for one)."""
+    return f"{min(values):{spec}} to {max(values):{spec}}" if len(values) > 1 else ""
 
 
 def median_ratio(pairs):
+    """(median of a / b, every a / b) over the pairs where both are known and non-zero."""
     ratios = [a / b for a, b in pairs if a and b]
     return (statistics.median(ratios), ratios) if ratios else (None, [])
+
+
+def where_met(dts):
+    """'reaches it at dt 0.04 s in 2 of 4 scenes, 0.01 s in 1, never in 1', from the largest dt meeting
+    the goal in each scene (None: none does)."""
+    counts = Counter(dts)
+    found = sorted((d for d in counts if d is not None), reverse=True)
+    if not found:
+        return "never reaches it" if len(dts) == 1 else f"reaches it in none of the {len(dts)} scenes"
+    if len(dts) == 1:
+        return f"reaches it at dt {found[0]:g} s"
+    parts = [f"{d:g} s in {counts[d]}" for d in found] + ([f"never in {counts[None]}"] if None in counts else [])
+    return f"reaches it at dt {parts[0]} of {len(dts)} scenes" + "".join(f", {p}" for p in parts[1:])
 
 
 def headline(scenes):
@@ -386,55 +401,43 @@ def headline(scenes):
     time_ratio, times = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in zip(newton, single))
     error_ratio, errors = median_ratio((final_error(a), final_error(b)) for a, b in zip(newton, single))
     goal = {step: [goal_dt(s, step) for s in scenes] for step in ("newton", "single")}
-    cheapest = {step: [cheapest_to_goal(s, step) for s in scenes] for step in ("newton", "single")}
-    pays, pay_ratios = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"])
-                                    for a, b in zip(cheapest["newton"], cheapest["single"]) if a and b)
+    cheapest = [(cheapest_to_goal(s, "newton"), cheapest_to_goal(s, "single")) for s in scenes]
+    pays, pay_ratios = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in cheapest if a and b)
     floors = [s["reference_floor"] for s in scenes]
     numbers = {
         "newton_over_single_time": time_ratio, "newton_over_single_error": error_ratio,
-        "goal_dt": {step: most_common(dts_) for step, dts_ in goal.items()},
-        "goal_met_scenes": {step: sum(d is not None for d in dts_) for step, dts_ in goal.items()},
+        "goal_dt": goal,     # per scene, in order: the largest dt meeting the goal (None: none does)
         "cheapest_to_goal_newton_over_single": pays,
         "corotation_cost_single_pct": statistics.median(corotation_cost(s, "single") for s in scenes),
         "corotation_cost_newton_pct": statistics.median(corotation_cost(s, "newton") for s in scenes),
         "corotation_cost_direct_pct": statistics.median(corotation_cost(s, "single", "direct") for s in scenes),
         "reference_floor": statistics.median(floors),
     }
-    goal_words = f"{100 * ERROR_GOAL:g} % of the scene size at t = {last:g} s"
-    lines = [f"A correct step costs: Newton takes {fmt(time_ratio, '.2g')} times the wall time per simulated "
-             f"second of the one-solve step and leaves {fmt(error_ratio, '.2g')} times its error (corotational, "
-             f"PCG {sci(BASELINE_TOLERANCE)}, {at_dt}){spread(times, ' times')}."]
-
-    def reach(step):
-        found = [d for d in goal[step] if d is not None]
-        if not found:
-            return "never within the dt axis"
-        return f"by dt {numbers['goal_dt'][step]:g} s ({len(found)} of {n} scenes)"
-
-    sentence = (f"Within the error goal ({goal_words}): Newton gets there {reach('newton')}, "
-                f"the one-solve step {reach('single')} (the largest dt meeting it, PCG {sci(BASELINE_TOLERANCE)})")
-    if pays is None:
-        sentence += "."
-    else:
-        verdict = "Newton pays" if pays < 1 else "Newton does not pay at this goal"
-        sentence += (f"; the cheapest corotational run within it takes {pays:.2g} times as long with Newton as "
-                     f"with the one-solve step{spread(pay_ratios, ' times')}: {verdict}.")
+    over = f"; medians over {n} scenes, {spread(times)} and {spread(errors)} times" if n > 1 else ""
+    lines = [f"A correct step costs: Newton takes {fmt(time_ratio, '.2f')} times the wall time per simulated "
+             f"second of the one-solve step and leaves {fmt(error_ratio, '.2f')} times its error (corotational, "
+             f"PCG {sci(BASELINE_TOLERANCE)}, {at_dt}{over})."]
+    sentence = (f"Within the error goal ({100 * ERROR_GOAL:g} % of the scene size at t = {last:g} s, the "
+                f"reference's own error counted in), at PCG {sci(BASELINE_TOLERANCE)}: Newton "
+                f"{where_met(goal['newton'])}; the one-solve step {where_met(goal['single'])}.")
+    if pays is not None:
+        both = ("" if n == 1 else f" (median over the {len(pay_ratios)} scenes where both meet it)"
+                if len(pay_ratios) > 1 else " (in the one scene where both meet it)")
+        sentence += (f" The cheapest corotational run within it takes {pays:.2f} times the wall time per simulated "
+                     f"second with Newton as with the one-solve step{both}: "
+                     + ("Newton pays." if pays < 1 else "Newton does not pay at this goal."))
     lines.append(sentence)
     lines.append(f"Corotation costs {numbers['corotation_cost_single_pct']:.0f} % more per step than linear with "
                  f"the matrix-free one-solve step (PCG {sci(BASELINE_TOLERANCE)}), "
                  f"{numbers['corotation_cost_newton_pct']:.0f} % with Newton and "
-                 f"{numbers['corotation_cost_direct_pct']:.0f} % with the direct solver (medians).")
-    dt_ref = scenes[0]["reference_dt"]
-    lines.append(f"The reference (Newton to 1e-10 in f64 at dt_ref = dt / {REFERENCE_REFINEMENT}"
-                 + (f" = {dt_ref:g} s" if len(dts) == 1 else "") + f") differs from a run at 2 dt_ref by "
-                 f"{numbers['reference_floor']:.1e}{spread(floors, '')}: the error axis bottoms out there, "
-                 f"and errors near it are measured up to 2 times too low.")
+                 f"{numbers['corotation_cost_direct_pct']:.0f} % with the direct solver"
+                 + (" (medians)." if n > 1 else "."))
+    dt_ref = f" = {scenes[0]['reference_dt']:g} s" if len(dts) == 1 else ""
+    floor_range = f" (median; {spread(floors, '.1e')})" if n > 1 else ""
+    lines.append(f"The reference (Newton to 1e-10 in f64 at dt_ref = dt / {REFERENCE_REFINEMENT}{dt_ref}) "
+                 f"differs from a run at 2 dt_ref by {numbers['reference_floor']:.1e}{floor_range}: the error "
+                 "axis bottoms out there, and errors near it are measured up to 2 times too low.")
     return lines, numbers
-
-
-def most_common(values):
-    found = [v for v in values if v is not None]
-    return Counter(found).most_common(1)[0][0] if found else None
 
 
 # ---------------------------------------------------------------- the machine
@@ -466,18 +469,22 @@ def fmt(value, spec=".3g", missing="–"):
 
 
 def explanation(results):
+    """Two paragraphs: the reference and what its error floor means; the columns."""
     plan = results["plan"]
-    return (
-        f"Each run starts from the same state and runs to the last checkpoint. The reference is corotational "
-        f"backward Euler at dt_ref = the scene's dt / {REFERENCE_REFINEMENT}, Newton until every body's "
-        f"gradient is under 1e-10 of the step's own terms (at most {REFERENCE_SETTINGS['max_newton']} "
-        "iterations), PCG to 1e-10, SVD rotations, in float64 whatever the variants' precision (its timings "
-        "are f64's). *reference at 2 dt_ref* is the same at twice that dt: its error is an estimate of the "
-        "reference's own (backward Euler is first order), the floor of the error axis; a variant at dt shows "
-        "about (dt - dt_ref) / dt of its true error (1/2 at dt = 2 dt_ref, 7/8 at 8 dt_ref). A dt_ref of the "
-        "smallest variant dt / 8 would lower that floor 4 times for 4 times the reference's cost, more than "
-        "all the variants together. "
-        "*step*: Newton (iterated until the velocity settles, the scene's newton_tolerance) or single (one "
+    reference = (
+        "Each run starts from the same state and runs to the last checkpoint. **The reference** is corotational "
+        f"backward Euler at dt_ref = the scene's dt / {REFERENCE_REFINEMENT}: Newton until every body's gradient "
+        f"is under 1e-10 of the step's own terms (at most {REFERENCE_SETTINGS['max_newton']} iterations), PCG to "
+        "1e-10, SVD rotations, in float64 whatever the variants' precision (so its timings are f64's). Being "
+        "backward Euler, it has an O(dt_ref) error of its own: *reference at 2 dt_ref*, the same at twice that "
+        "dt, differs from it by about that much, and its error is the floor of the error axis. Errors near the "
+        "floor are measured too low (a variant at dt shows about (dt - dt_ref) / dt of its true error: 1/2 at "
+        "2 dt_ref, 7/8 at 8 dt_ref), so a run meets the goal of "
+        f"{100 * ERROR_GOAL:g} % of the scene size only when its error plus the floor does. dt_ref = the "
+        "smallest variant dt / 8 would lower the floor 4 times, but the reference, already the dearest run of a "
+        "scene, would cost 4 times more.")
+    columns = (
+        "*step*: Newton (iterated until the velocity settles to the scene's newton_tolerance) or single (one "
         "linear solve with the rotations of the step's start); a linear body's step is exact either way. "
         "*s/sim s*: wall seconds per simulated second, ms/step / dt / 1000 (compares runs at different dt); "
         f"*ms/step*: wall time per step (median, min-max) after {plan['warmup_steps']} warm-up steps, "
@@ -490,6 +497,7 @@ def explanation(results):
         "|volume / rest volume - 1| of any body; *energy*: (kinetic + elastic) energy at the end over its "
         "start value, minus 1. A blank (–) error: the variant would have taken longer than its time budget "
         f"({plan['budget_s']:g} s) and stopped early.")
+    return reference + "\n\n" + columns
 
 
 def markdown(results):
@@ -501,7 +509,8 @@ def markdown(results):
               f"{m['precision']}; direct solver {m['direct_solver']}; Python {m['python']}; {m['date']}; "
               f"{m['bench_minutes']:.1f} minutes.", "", explanation(results), ""]
     lines += ["## Summary", "",
-              "Corotational, PCG at the default tolerance; time in wall seconds per simulated second.", "",
+              f"Corotational, PCG {sci(BASELINE_TOLERANCE)}; time in wall seconds per simulated second, errors at "
+              "the last checkpoint; the largest dt of the dt axis whose error plus the floor is within the goal.", "",
               "| scene | tets | dt (s) | reference floor | Newton s/sim s | single s/sim s | Newton error | "
               "single error | largest dt within goal, Newton | single | corotation's extra cost, single | "
               "Newton | direct |",
@@ -580,6 +589,7 @@ def plot(results, file):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     scenes = results["scenes"]
     cols = min(3, len(scenes))
@@ -594,11 +604,14 @@ def plot(results, file):
             ax.plot(xs, ys, style, color=colour, alpha=0.85, ms=5, label=legend)
             for x, y, label in points:
                 ax.annotate(label, (x, y), fontsize=6, color=colour, textcoords="offset points", xytext=(3, 3))
-        ax.axhline(ERROR_GOAL, color="green", lw=1, ls=":", label=f"the goal: {100 * ERROR_GOAL:g} % of the size")
+        ax.axhline(ERROR_GOAL, color="green", lw=1, ls=":", label=f"the goal: {100 * ERROR_GOAL:g} % of the scene size")
         ax.axhspan(1e-12, s["reference_floor"], color="grey", alpha=0.15, lw=0,
                    label="below the reference's own error (estimate)")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1, 2, 5)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_ylim(bottom=lowest / 3)
         ax.set_title(f"{s['name']} ({s['tets']} tets, scene dt {s['dt']:g} s, dt_ref {s['reference_dt']:g} s)",
                      fontsize=9)
