@@ -184,12 +184,13 @@ def configure(sim, variant):
 
 
 def warm_up(sim, steps=2):
-    """Compile every kernel the variants use before anything is timed."""
+    """Compile every kernel the variants use, and the measurements, before anything is timed."""
     engine = [v for v in variants() if v.solver != "direct"]
     for variant in {(v.method, v.solver, v.step): v for v in engine}.values():
         configure(sim, variant)
         for _ in range(steps):
             sim.step()
+    sim.stats()
 
 
 def run_variant(sim, variant, times, plan):
