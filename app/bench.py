@@ -572,15 +572,17 @@ def series(scene):
         key = (f"{kind}, {what}", COLOURS[row["method"], row["step"]], style)
         out.setdefault(key, []).append((row["s_per_sim_s"], max(error, 1e-12), label))
 
+    dts = "dt " + " / ".join(format(f * scene["dt"], "g") for f in DT_FACTORS) + " s"
+    tolerances = "PCG " + " / ".join(map(sci, PCG_TOLERANCES))
+    jacobi = "Jacobi x" + " / ".join(map(str, JACOBI_ITERATIONS))
     ends = (PCG_TOLERANCES[0], PCG_TOLERANCES[-1], JACOBI_ITERATIONS[0], JACOBI_ITERATIONS[-1])
-    for r in scene["variants"]:
+    for r in scene["variants"]:   # only the ends of the tolerance and Jacobi axes are labelled: they crowd
         if r["solver"] == "pcg" and r["tolerance"] == BASELINE_TOLERANCE:
-            dts = " / ".join(format(f * scene["dt"], "g") for f in DT_FACTORS)
-            add(r, f"dt {dts} s", "o-", f"{r['dt']:g} s")
-        if r["solver"] == "pcg" and r["dt_factor"] == 1:   # the middle points are labelled by the dt axis
-            add(r, f"PCG {' / '.join(map(sci, PCG_TOLERANCES))}", "^--", sci(r["tolerance"]) * (r["tolerance"] in ends))
+            add(r, dts, "o-", f"{r['dt']:g} s")
+        if r["solver"] == "pcg" and r["dt_factor"] == 1:
+            add(r, tolerances, "^--", sci(r["tolerance"]) if r["tolerance"] in ends else "")
         if r["solver"] == "jacobi":
-            add(r, f"Jacobi x{' / '.join(map(str, JACOBI_ITERATIONS))}", "s:", f"J{r['iterations']}" * (r["iterations"] in ends))
+            add(r, jacobi, "s:", f"J{r['iterations']}" if r["iterations"] in ends else "")
         if r["solver"] == "direct":
             add(r, "direct", "D", "")
     return out
