@@ -1,4 +1,5 @@
-"""The benchmark: the direct baseline agrees with the engine, and `bench` writes every file and row.
+"""The benchmark: the direct baseline agrees with the engine, and `bench` writes every file and row
+with errors that measure physics (against a converged reference) and costs that add up.
 
 Timings are never asserted: they are what the benchmark measures.
 """
@@ -8,6 +9,7 @@ import json
 import numpy as np
 import pytest
 from conftest import box_mesh, make_scene
+from tqdm import tqdm
 
 import fem
 import main
@@ -58,8 +60,8 @@ def test_polar_rotations_are_proper_also_for_inverted_tets():
     np.testing.assert_allclose(S[upright], np.swapaxes(S[upright], 1, 2), atol=1e-12)
 
 
-def run_bench(tmp_path, *extra):
-    args = main.build_parser().parse_args(["bench", "--out", str(tmp_path), "--precision", "f64", *extra])
+def run_bench(tmp_path, *extra, precision="f64"):
+    args = main.build_parser().parse_args(["bench", "--out", str(tmp_path), "--precision", precision, *extra])
     return bench.run(args, plan=bench.TEST)
 
 
@@ -70,40 +72,104 @@ def bench_output(tmp_path_factory):
     return out
 
 
+def rows_of(out):
+    (scene,) = json.loads((out / "results.json").read_text())["scenes"]
+    return scene, scene["variants"]
+
+
 def test_bench_writes_all_three_files(bench_output):
     assert (bench_output / "accuracy_vs_time.png").read_bytes().startswith(b"\x89PNG")
     md = (bench_output / "results.md").read_text()
-    for word in ("linear", "corotational", "PCG", "Jacobi", "direct", "reference", "err 0.2 s", "Corotation costs"):
-        assert word in md
+    for words in ("A correct step costs", "Corotation costs", "reference at 2 dt_ref", "Newton", "single",
+                  "Jacobi", "direct", "s/sim s", "err 0.2 s", "halvings", "E-limited"):
+        assert words in md
     assert json.loads((bench_output / "results.json").read_text())["headline"]
 
 
-def test_bench_has_every_variant_with_an_error(bench_output):
-    results = json.loads((bench_output / "results.json").read_text())
-    (scene,) = results["scenes"]
-    rows = {(r["method"], r["solver"], r["tolerance"], r["iterations"]): r for r in scene["variants"]}
-    for method in ("linear", "corotational"):
+def test_bench_has_every_variant_once_with_an_error(bench_output):
+    scene, rows = rows_of(bench_output)
+    keys = [(r["method"], r["solver"], r["step"], r["dt_factor"], r["tolerance"], r["iterations"]) for r in rows]
+    assert len(set(keys)) == len(keys) == len(bench.REFERENCES) + len(bench.variants())
+    for step in ("newton", "single"):
+        for f in bench.DT_FACTORS:
+            assert ("corotational", "pcg", step, f, bench.BASELINE_TOLERANCE, None) in keys
         for tol in bench.PCG_TOLERANCES:
-            assert (method, "pcg", tol, None) in rows
-        for k in bench.JACOBI_ITERATIONS:
-            assert (method, "jacobi", None, k) in rows
-        assert (method, "direct", None, None) in rows
-    for row in rows.values():
-        assert set(row["errors"]) == {"0.1", "0.2"}
+            assert ("corotational", "pcg", step, 1, tol, None) in keys
+    linear_pcg = [k for k in keys if k[:2] == ("linear", "pcg")]
+    assert len(linear_pcg) == len(bench.DT_FACTORS) + len(bench.PCG_TOLERANCES) - 1   # not once per step kind
+    for method in ("linear", "corotational"):
+        assert len([k for k in keys if k[:2] == (method, "jacobi")]) == len(bench.JACOBI_ITERATIONS)
+        assert (method, "direct", "single", 1, None, None) in keys
+    assert scene["checkpoints"] == [0.08, 0.2]
+    for row in rows:
+        assert set(row["errors"]) == {"0.08", "0.2"}
         assert all(e is not None and e >= 0 for e in row["errors"].values())
-        assert row["ms_median"] > 0 and row["bytes_per_tet"] > 0
+        assert not row["stopped_early"] and row["ms_median"] > 0 and row["bytes_per_tet"] > 0
+
+
+def test_the_reference_and_its_floor(bench_output):
+    """Error 0 against itself; at 2 dt_ref it differs by the floor the scene reports."""
+    scene, rows = rows_of(bench_output)
+    reference, doubled = rows[:2]
+    assert reference["dt"] == pytest.approx(scene["dt"] / 8) and doubled["dt"] == pytest.approx(scene["dt"] / 4)
+    assert all(e == 0 for e in reference["errors"].values())
+    assert 0 < doubled["errors"]["0.08"] < doubled["errors"]["0.2"] == scene["reference_floor"]
+
+
+def test_errors_shrink_as_dt_shrinks_first_order(bench_output):
+    """Backward Euler is first order: against a reference at dt_ref, the error is about C (dt - dt_ref)."""
+    scene, rows = rows_of(bench_output)
+    for step in ("newton", "single"):
+        axis = sorted((r for r in rows if r["method"] == "corotational" and r["solver"] == "pcg" and r["step"] == step
+                       and r["tolerance"] == bench.BASELINE_TOLERANCE), key=lambda r: r["dt"])
+        errors = [r["errors"]["0.2"] for r in axis]
+        assert errors == sorted(errors) and len(set(errors)) == len(errors)
+        constants = [e / (r["dt"] - scene["reference_dt"]) for e, r in zip(errors, axis)]
+        assert max(constants) < 2 * min(constants)
+
+
+def test_a_rows_time_per_simulated_second_is_its_ms_per_step_over_dt(bench_output):
+    for row in rows_of(bench_output)[1]:
+        assert row["s_per_sim_s"] == pytest.approx(row["ms_median"] / row["dt"] / 1000)
 
 
 def test_bench_errors_measure_physics(bench_output):
-    """The exact direct solve sits on the reference; linear FEM of a spinning bar is far off."""
-    (scene,) = json.loads((bench_output / "results.json").read_text())["scenes"]
-    error = {r["label"]: r["errors"]["0.2"] for r in scene["variants"]}
-    assert error["corotational direct"] < 1e-7
-    assert error["linear direct"] > 1e-3
-    assert error["corotational PCG 1e-2"] > error["corotational PCG 1e-6"]
+    """The direct solve is the one-solve step solved exactly: PCG 1e-6 lands on it. Linear FEM of a
+    spinning bar is further off than either corotational step; only Newton iterates."""
+    scene, rows = rows_of(bench_output)
+    row = {(r["name"], r["step"], r["dt_factor"]): r for r in rows}
+    direct, pcg = row["corotational direct", "single", 1], row["corotational PCG 1e-6", "single", 1]
+    assert direct["errors"]["0.2"] == pytest.approx(pcg["errors"]["0.2"], rel=1e-4)
+    for step in ("newton", "single"):
+        corotational = row["corotational PCG 1e-4", step, 1]
+        assert row["linear PCG 1e-4", "newton", 1]["errors"]["0.2"] > 2 * corotational["errors"]["0.2"]
+    assert row["corotational PCG 1e-4", "newton", 1]["newton_per_step"] > 1
+    assert row["corotational PCG 1e-4", "single", 1]["newton_per_step"] == 1
+    assert row["linear PCG 1e-4", "newton", 1]["newton_per_step"] == 1
+
+
+def test_headline_numbers_are_the_tables(bench_output):
+    results = json.loads((bench_output / "results.json").read_text())
+    numbers, (scene,) = results["headline_numbers"], results["scenes"]
+    newton, single = (bench.baseline(scene, "corotational", step) for step in ("newton", "single"))
+    assert numbers["newton_over_single_time"] == pytest.approx(newton["s_per_sim_s"] / single["s_per_sim_s"])
+    assert numbers["newton_over_single_error"] == pytest.approx(newton["errors"]["0.2"] / single["errors"]["0.2"])
+    assert numbers["reference_floor"] == scene["reference_floor"]
 
 
 def test_bench_refuses_a_non_empty_folder(tmp_path):
     (tmp_path / "keep.txt").write_text("mine")
     with pytest.raises(fem.FemError, match="--overwrite"):
         run_bench(tmp_path)
+
+
+def test_an_f32_bench_takes_its_reference_in_f64_and_comes_back(bench_output, tmp_path):
+    """The same reference numbers as in the f64 bench, and Taichi in f32 again for the variants."""
+    args = main.build_parser().parse_args(["bench", "--out", str(tmp_path), "--precision", "f32"])
+    fem.init("cpu", "f32")
+    with tqdm(disable=True) as progress:
+        rows, reference = bench.measure_references(bench.make_scene("box80"), [0.08], bench.TEST, args, progress)
+    assert fem.runtime.current()["precision"] == "f32"
+    assert reference["0.08"].dtype == np.float64
+    _, rows64 = rows_of(bench_output)
+    assert rows[1]["errors"]["0.08"] == pytest.approx(rows64[1]["errors"]["0.08"], rel=1e-9)
