@@ -116,12 +116,11 @@ class Model:
         return any(b.method == "corotational" for b in self.bodies)
 
     def body_floor(self, relative, dt):
-        """Per body, the square of `relative` times the natural size of a step's gradient
-        (N s): the momentum of the body moving its own size L in a step (m L / dt), plus the
-        impulse over a step of its stiffness times its cross-section (dt E L^2).
+        """Per body, the square of `relative` times dt E L^2 (N s): the impulse over a step of
+        the body's stiffness times its cross-section, the size of the round-off in its elastic
+        forces (positions carry round-off relative to their size L whatever the strain).
         Below it a gradient is round-off. Returns (bodies,) float64."""
-        return np.array([(relative * (b.mass * b.size / dt + dt * b.material.E * b.size ** 2)) ** 2
-                         for b in self.bodies])
+        return np.array([(relative * dt * b.material.E * b.size ** 2) ** 2 for b in self.bodies])
 
     def body_speed_floor(self, relative, dt):
         """Per body, m (relative L / dt)^2 (J): twice the kinetic energy of the body moving

@@ -132,6 +132,8 @@ class ImplicitSolver:
         self.body_speed_floor = ti.field(ti.f64, nb)          # round-off floor of |v_b|_M^2, J
         self.energy_before = ti.field(ti.f64, nb)             # total energy of each body before the step, J
         self.energy_after = ti.field(ti.f64, nb)              # ... and after it, J
+        self.energy_size_before = ti.field(ti.f64, nb)        # sum of |terms| of energy_before, J
+        self.energy_size_after = ti.field(ti.f64, nb)         # ... of energy_after, J
         self.body_mass = ti.field(ti.f64, nb)                 # kg (free vertices only)
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)   # kg m/s
         self.body_pinned = ti.field(ti.i32, nb)               # 1: the body has pinned vertices
@@ -182,15 +184,17 @@ class ImplicitSolver:
         self.copy_state(state_in.x, state_in.v, self.x, self.v)
         rotation_ms = self.update_rotations(self.x, corotational)    # R(x_n)
         if newton:
-            self.body_energy(self.x, self.v, self.energy_before)     # x, v = x_n, v_n still
+            self.body_energy(self.x, self.v, self.energy_before, self.energy_size_before)     # x, v = x_n, v_n still
         self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
         if self.has_stiffness_damping:
             self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
         if corotational or self.preconditioner_key != (cM, cK):
             self.build_preconditioner(cM, cK)                 # linear: built once, as H never changes
             self.preconditioner_key = None if corotational else (cM, cK)
-        rho = self.gradient(self.v0, self.x, self.v, dt, settings.tolerance, True)
+        tolerance = max(settings.tolerance, ROUNDOFF * epsilon())   # none below round-off
+        rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, True)
         energy = self.energy(self.v0, self.x, self.v, dt) if newton else 0.0
+        resolution = ROUNDOFF * epsilon() * abs(energy)       # J: smaller changes of E are noise
 
         newton_iters = solver_iters = halvings = 0
         settled = False
@@ -203,6 +207,9 @@ class ImplicitSolver:
                 self.try_step(self.x0, self.x, self.v, 1.0, dt)
                 break
             slope = self.slope()                              # grad E . d (J), < 0 for a descent direction
+            if -slope <= resolution:                          # the Newton decrement: nothing left to gain
+                settled = True
+                break
             a, accepted = 1.0, False
             for _ in range(MAX_HALVINGS + 1):
                 self.try_step(self.x0, self.x, self.v, a, dt)
@@ -220,7 +227,7 @@ class ImplicitSolver:
             energy = trial
             self.accept(self.v)
             change = self.velocity_change(a, settings.newton_tolerance)
-            rho = self.gradient(self.v0, self.x, self.v, dt, settings.tolerance, False)
+            rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, False)
             if change <= 1.0:                                 # every body's velocity has settled
                 settled = True
                 break
@@ -236,11 +243,11 @@ class ImplicitSolver:
         if bad == 0 and newton:
             if not self.has_ground:
                 self.restore_momentum(self.v0, self.x0, self.x, self.v, dt)
-            self.body_energy(self.x, self.v, self.energy_after)
+            self.body_energy(self.x, self.v, self.energy_after, self.energy_size_after)
             limited = self.limit_energy(self.x0, self.x, self.v)
         self.copy_state(self.x, self.v, state_out.x, state_out.v)
         ti.sync()
-        residual = settings.tolerance * math.sqrt(max(rho, 0.0))
+        residual = tolerance * math.sqrt(max(rho, 0.0))
         wall_ms = 1e3 * (time.perf_counter() - start)
         return StepInfo(finite=bad == 0, converged=bool(rho <= 1.0 or settled),
                         residual=residual if math.isfinite(residual) else None,
@@ -609,23 +616,27 @@ class ImplicitSolver:
     # StepInfo counts both.
 
     @ti.kernel
-    def body_energy(self, x: ti.template(), v: ti.template(), out: ti.template()):
+    def body_energy(self, x: ti.template(), v: ti.template(), out: ti.template(), size: ti.template()):
         """out[b] <- kinetic + elastic + gravitational energy of body b (J, float64),
-        elastic with the rotations extracted at x."""
+        elastic with the rotations extracted at x; size[b] <- the sum of the sizes of its
+        terms (J), the scale of its round-off."""
         for b in out:
-            out[b] = 0.0
+            out[b], size[b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_tets)
         for e in self.rotated_Bm:
             F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
-            out[self.model_tet_body(e)] += ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
+            psi = ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
                 F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
+            out[self.model_tet_body(e)] += psi
+            size[self.model_tet_body(e)] += psi
         ti.loop_config(serialize=self.serial_vertices)
         for i in x:
             m = ti.cast(self.model.mass[i], ti.f64)
-            energy = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr()
+            kinetic, potential = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr(), ti.cast(0.0, ti.f64)
             if ti.static(self.has_gravity):
-                energy -= m * ti.cast(self.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
-            out[self.vertex_body[i]] += energy
+                potential = -m * ti.cast(self.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
+            out[self.vertex_body[i]] += kinetic + potential
+            size[self.vertex_body[i]] += kinetic + ti.abs(potential)
 
     @ti.func
     def model_tet_body(self, e):
@@ -657,8 +668,9 @@ class ImplicitSolver:
         ti.loop_config(serialize=True)
         for b in self.body_change:
             rise = self.energy_after[b] - self.energy_before[b]
+            noise = ti.static(ROUNDOFF * epsilon()) * ti.max(self.energy_size_before[b], self.energy_size_after[b])
             scale = ti.cast(1.0, ti.f64)
-            if rise > 0:
+            if rise > noise:                     # a rise within round-off is no rise
                 limited += 1
                 if self.body_change[b] > rise:
                     scale = ti.sqrt(1.0 - rise / self.body_change[b])
