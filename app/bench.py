@@ -44,12 +44,12 @@ from pathlib import Path
 
 import numpy as np
 import taichi as ti
-from tqdm import tqdm
 
 import fem
 import scenes
 from app import device, direct
 from app.files import atomic_open, refuse_overwrite
+from app.progress import Progress
 from assets.generators import box
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
 
@@ -657,7 +657,7 @@ def run(args, plan=None):
     began = time.perf_counter()
     scenes = []
     runs = len(REFERENCES) + len(variants())
-    with tqdm(total=len(plan.scenes) * runs, unit="run", file=sys.stderr) as progress:
+    with Progress(len(plan.scenes) * runs, "run", "bench") as progress:
         for ref in plan.scenes:
             scenes.append(measure_scene(ref, plan, args, progress))
     lines, numbers = headline(scenes)

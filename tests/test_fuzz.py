@@ -72,9 +72,9 @@ def mutations(text):
                      st.tuples(token_mutation(text), line_mutation(text)).map(lambda p: p[1] + p[0]))
 
 
-def only_fem_errors(read, path):
+def only_fem_errors(read, path, *args):
     try:
-        read(path)
+        read(path, *args)
     except FemError as error:
         assert str(error)          # a message, never an empty error
 
