@@ -1,7 +1,7 @@
 """Every command the READMEs show works, run in the order shown, as on a fresh clone.
 
-The commands are read from README.md and scenes/README.md: the lines of `bash` blocks and
-the inline `python main.py ...` spans (not the syntax lines, whose words in capitals, such
+The commands are read from README.md, scenes/README.md and docs/experiments.md: the lines
+of `bash` blocks and the inline `python main.py ...` spans (not the syntax lines, whose words in capitals, such
 as SCENE or FILE.jsonl, stand for what a user fills in). Each runs in one shared, initially
 empty folder through `main.main` in this process, with fewer frames and steps and smaller
 pictures than shown. A user's own files the text names (my_shape.obj, fertility.mesh) are
@@ -26,7 +26,7 @@ from assets import box, tetrahedralize
 from fem.mesh import TetMesh, write_tet_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
-READMES = [ROOT / "README.md", ROOT / "scenes" / "README.md"]
+READMES = [ROOT / "README.md", ROOT / "scenes" / "README.md", ROOT / "docs" / "experiments.md"]
 PROGRAMS = ("python main.py", ".venv/bin/python main.py", "softfem", ".venv/bin/softfem")
 # What a command may start with that does not run here, and why.
 SKIPPED = {
@@ -89,8 +89,7 @@ def smaller(argv):
     return argv
 
 
-ALL = [(readme.name if readme.parent == ROOT else f"scenes/{readme.name}", words)
-       for readme in READMES for words in commands(readme.read_text())]
+ALL = [(str(readme.relative_to(ROOT)), words) for readme in READMES for words in commands(readme.read_text())]
 
 
 def test_the_readmes_show_commands():
