@@ -39,7 +39,7 @@ def plot(scene, runs, out):
     ax.axhline(1.0, color="grey", lw=0.8)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("volume / rest volume")
-    ax.set_title(f"{scene.name}: linear FEM changes volume as bodies turn; corotational keeps it")
+    ax.set_title(f"{scene.name}: volume of each body, linear (dashed) and corotational FEM", fontsize=10)
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
