@@ -4,7 +4,9 @@ For det F > 0 that is the polar rotation (F = R S, S symmetric positive definite
 for an inverted tet (det F < 0) it is the inversion-safe rotation of Irving et
 al. 2004 (the SVD's U V^T with the column of the smallest singular value flipped).
 
-`rotation_of(F, q)` is the routine the solver uses every step: Newton steps on
+`rotation_of(F, q)` is the routine the solver follows every step (split over two
+kernels there, `extract_rotations` and `svd_rotations`, so the SVD compiles only
+when needed): Newton steps on
 tr(R^T F) (Mueller et al. 2016 with the exact Hessian) from the previous step's
 rotation q; from a warm start two of them in f32, two or three in f64, about a
 sixth of the cost of an SVD (tools/rotation_cost.py). The iteration is trusted
