@@ -206,7 +206,7 @@ def run_variant(sim, variant, times, plan):
         step = solver.step
 
         def observe():
-            sim.state.load(solver.x, solver.v)   # the engine measures the direct solver's state too
+            sim.set_state(solver.x, solver.v)   # the engine measures the direct solver's state too
             return solver.x, sim.stats()
     else:
         step = sim.step

@@ -97,7 +97,7 @@ class DirectSolver:
         g, W = shape_gradients(self.X, self.tets)
         self.Ke = element_stiffness(g, W, mu, lam)
         self.Bm = g[:, :3, :]                        # F = Ds Bm
-        self.free = model.free.to_numpy().astype(bool)
+        self.free = model.free_np.astype(bool)
         self.free_dofs = np.repeat(self.free, 3)
         self.impulses = sorted(sim.impulses, key=lambda imp: imp[0])
         self.build_pattern(n)

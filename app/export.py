@@ -45,7 +45,7 @@ import scenes
 from app import EXIT_INTERRUPTED, device
 from app.camera import Camera, auto_frame
 from app.colors import VertexColoring
-from app.files import atomic_open, atomic_path, refuse_overwrite
+from app.files import atomic_open, atomic_path, interrupts_deferred, refuse_overwrite
 from app.overlay import PANEL_COLOR, TEXT_COLOR, draw_text_overlay
 from app.progress import Progress
 from app.render import make_renderer
@@ -375,12 +375,13 @@ class VideoWriter:
 
     def append(self, image: np.ndarray):
         """Add one frame, (H, W, 3) uint8, every frame the same size."""
-        if self.path.suffix.lower() == ".mp4":
-            self.writer.append_data(image)
-        else:
-            # GIF delays are whole hundredths of a second; loop=0 repeats forever.
-            self.writer.write(image, duration=1000.0 / self.fps, loop=0)
-        self.frames += 1
+        with interrupts_deferred():
+            if self.path.suffix.lower() == ".mp4":
+                self.writer.append_data(image)
+            else:
+                # GIF delays are whole hundredths of a second; loop=0 repeats forever.
+                self.writer.write(image, duration=1000.0 / self.fps, loop=0)
+            self.frames += 1
 
     def __exit__(self, kind, error, traceback):
         if not self.active:
@@ -389,8 +390,9 @@ class VideoWriter:
         keep = kind is None or (issubclass(kind, KeyboardInterrupt) and self.frames > 0)
         try:
             if keep:
-                self.writer.close()
-                os.replace(self.temporary, self.path)
+                with interrupts_deferred():
+                    self.writer.close()
+                    os.replace(self.temporary, self.path)
             else:
                 with contextlib.suppress(Exception):   # a half-written video is discarded anyway
                     self.writer.close()

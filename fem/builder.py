@@ -1,18 +1,19 @@
-"""The builder: a Scene (a description) becomes a Model (Taichi fields) and a start State.
+"""The builder: a Scene (a description) becomes the arrays of a Model and a start State.
 
-    model = build_model(scene)
+    model.load(*model_arrays(scene))
     x, v = initial_state(scene, model)
 """
 
 import numpy as np
 
 from fem.mesh import boundary_faces
-from fem.model import BodyInfo, Model
+from fem.model import BodyInfo
 from fem.scene import Material, select_vertices
 
 
-def build_model(scene):
-    """One Model holding every body of the scene, in the scene's body order."""
+def model_arrays(scene):
+    """(bodies, X, T, mass, free): every body of the scene in one set of arrays, in the
+    scene's body order, as `Model.load` takes them."""
     meshes = [b.mesh for b in scene.bodies]
     v_off = np.cumsum([0] + [len(m.vertices) for m in meshes])
     t_off = np.cumsum([0] + [len(m.tets) for m in meshes])
@@ -34,7 +35,7 @@ def build_model(scene):
             size=float(np.linalg.norm(np.ptp(b.mesh.vertices, axis=0))), mass=float(mass[vertices].sum()),
             surface=(boundary_faces(b.mesh.tets) + v_off[i]).astype(np.int32),
             material=Material(b.material.E, b.material.nu, b.material.density), method=b.method))
-    return Model(bodies, X, T, mass, free)
+    return bodies, X, T, mass, free
 
 
 def initial_state(scene, model):
@@ -46,7 +47,7 @@ def initial_state(scene, model):
         for body, ids in select_vertices(init.selection, scene.bodies, "initial condition"):
             g = ids + offsets[body]
             apply_initial(init, x, v, g, model.mass_np[g])
-    return x, v * model.free.to_numpy()[:, None]
+    return x, v * model.free_np[:, None]
 
 
 def apply_initial(init, x, v, ids, mass):

@@ -9,7 +9,6 @@ import taichi as ti
 
 from fem.elastic import edge_matrix, energy_density
 from fem.rotation import newton_rotation, polar_rotation, quaternion_matrix
-from fem.runtime import serial_loops
 
 
 @ti.data_oriented
@@ -18,44 +17,43 @@ class Measure:
 
     start: a quaternion field (m,) to start each tet's rotation from (the solver's last
     rotations: near the answer, so Newton steps certify it and the SVD is rarely needed).
-    gravity: (gx, gy, gz) m/s^2 or None; the gravitational potential is -sum m g.x (J),
-    zero at the origin.
+    switches: the solver's `Switches` (only whether loops run serially is read).
+    Like the solver, made once per Model and reused (fem/pool.py); `load` sets the gravity.
     """
 
-    def __init__(self, model, start, gravity=None):
+    def __init__(self, model, start, switches):
         self.model = model
         self.start = start              # quaternions (x, y, z, w) per tet: where rotations are sought from
-        n_bodies = len(model.bodies)
-        self.gravity = gravity or (0.0, 0.0, 0.0)
+        n_bodies, n_tets = model.capacity.bodies, model.capacity.tets
+        self.gravity = ti.Vector.field(3, ti.f64, ())   # m/s^2; the potential is -sum m g.x, zero at the origin
         self.volume = ti.field(ti.f64, n_bodies)        # m^3
         self.elastic = ti.field(ti.f64, n_bodies)       # J
         self.kinetic = ti.field(ti.f64, n_bodies)       # J
         self.potential = ti.field(ti.f64, n_bodies)     # J, gravitational
         self.inverted = ti.field(ti.i32, n_bodies)
-        self.tet_body = ti.field(ti.i32, model.n_tets)
-        self.vertex_body = ti.field(ti.i32, model.n_vertices)
-        self.tet_volume_ratio = ti.field(float, model.n_tets)
-        self.tet_energy_density = ti.field(float, model.n_tets)   # J/m^3
-        self.needs_svd = ti.field(ti.i8, model.n_tets)              # 1: R from the SVD
-        self.serial_tets = serial_loops(model.n_tets, "tets")
-        self.serial_vertices = serial_loops(model.n_vertices, "vertices")
-        self.tet_body.from_numpy(model.tet_body)
-        self.vertex_body.from_numpy(model.vertex_body)
+        self.tet_volume_ratio = ti.field(float, n_tets)
+        self.tet_energy_density = ti.field(float, n_tets)   # J/m^3
+        self.needs_svd = ti.field(ti.i8, n_tets)              # 1: R from the SVD
+        self.serial_tets, self.serial_vertices = switches.serial_tets, switches.serial_vertices
+
+    def load(self, gravity):
+        """gravity: (gx, gy, gz) m/s^2 or None."""
+        self.gravity[None] = gravity or (0.0, 0.0, 0.0)
 
     @ti.kernel
     def measure_tets(self, x: ti.template(), v: ti.template()) -> ti.i32:
         """Volumes, inverted tets, kinetic and potential energy, and the elastic energy of
         every tet whose rotation Newton steps certify from the solver's last rotation;
         returns how many tets are left for `measure_svd_tets`."""
-        for b in self.volume:
+        for b in range(self.model.body_count[None]):
             self.volume[b], self.elastic[b], self.kinetic[b], self.potential[b] = 0.0, 0.0, 0.0, 0.0
             self.inverted[b] = 0
         left = 0
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.tet_body:
+        for e in range(self.model.tet_count[None]):
             F = self.deformation(x, e)
             J = F.determinant()
-            b = self.tet_body[e]
+            b = self.model.tet_body[e]
             self.volume[b] += ti.cast(J, ti.f64) * ti.cast(self.model.rest_volume[e], ti.f64)
             if J <= 0:
                 self.inverted[b] += 1
@@ -70,11 +68,11 @@ class Measure:
                     left += 1
             if not self.needs_svd[e]:
                 self.add_energy(e, F, R)
-        g = ti.Vector(self.gravity, dt=ti.f64)
+        g = self.gravity[None]
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.vertex_body:
+        for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
-            b = self.vertex_body[i]
+            b = self.model.vertex_body[i]
             self.kinetic[b] += 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr()
             self.potential[b] -= m * g.dot(ti.cast(x[i], ti.f64))
         return left
@@ -83,7 +81,7 @@ class Measure:
     def measure_svd_tets(self, x: ti.template()):
         """The elastic energy of the tets left by measure_tets, R from the SVD (`polar_rotation`)."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.tet_body:
+        for e in range(self.model.tet_count[None]):
             if self.needs_svd[e]:
                 F = self.deformation(x, e)
                 self.add_energy(e, F, polar_rotation(F))
@@ -97,7 +95,7 @@ class Measure:
     def add_energy(self, e, F, R):
         psi = energy_density(ti.cast(R.transpose() @ F, ti.f64), ti.cast(self.model.mu[e], ti.f64),
                              ti.cast(self.model.lam[e], ti.f64), 1.0)
-        self.elastic[self.tet_body[e]] += psi * ti.cast(self.model.rest_volume[e], ti.f64)
+        self.elastic[self.model.tet_body[e]] += psi * ti.cast(self.model.rest_volume[e], ti.f64)
         self.tet_energy_density[e] = ti.cast(psi, float)
 
     def measure(self, x, v):
@@ -111,17 +109,19 @@ class Measure:
         total_energy = kinetic + elastic + gravitational potential.
         """
         self.measure(x, v)
+        nb = len(self.model.bodies)
         rest = np.array([b.rest_volume for b in self.model.bodies])
-        kinetic, elastic, potential = self.kinetic.to_numpy(), self.elastic.to_numpy(), self.potential.to_numpy()
+        kinetic, elastic, potential = (f.to_numpy()[:nb] for f in (self.kinetic, self.elastic, self.potential))
+        volume, inverted = self.volume.to_numpy()[:nb], self.inverted.to_numpy()[:nb]
         return {
             "kinetic_energy": float(kinetic.sum()),
             "elastic_energy": float(elastic.sum()),
             "gravity_energy": float(potential.sum()),
             "total_energy": float((kinetic + elastic + potential).sum()),
-            "volume_ratio": (self.volume.to_numpy() / rest).tolist(),
-            "inverted_tets": int(self.inverted.to_numpy().sum()),
+            "volume_ratio": (volume / rest).tolist(),
+            "inverted_tets": int(inverted.sum()),
             "body_kinetic_energy": kinetic.tolist(),
             "body_elastic_energy": elastic.tolist(),
             "body_total_energy": (kinetic + elastic + potential).tolist(),
-            "body_inverted_tets": self.inverted.to_numpy().tolist(),
+            "body_inverted_tets": inverted.tolist(),
         }

@@ -1,9 +1,13 @@
 """Model (what never changes in a run, except by a live edit) and State (what does), as Taichi fields.
 
-`build_model(scene)` (fem/builder.py) concatenates every body into one set of fields, so
+`model_arrays(scene)` (fem/builder.py) concatenates every body into one set of arrays, so
 a single kernel launch covers all bodies; per-tet Lame parameters and a per-tet method
 flag let each body keep its own material and method. The Model keeps no reference to
 the Scene it was built from.
+
+Fields are sized to a `Capacity`, not to the mesh: kernels loop over the counts in use
+(`vertex_count`, `tet_count`, `body_count`), so one Model, with every kernel compiled
+for it, serves any later scene that fits (fem/pool.py).
 """
 
 from dataclasses import dataclass
@@ -29,11 +33,31 @@ class BodyInfo:
     method: str                # "linear" | "corotational"
 
 
+@dataclass(frozen=True)
+class Capacity:
+    """How many vertices, tets and bodies a Model's fields hold: each count rounded up to an
+    eighth of a power of two (at most 12.5 % unused), so similar meshes share a size."""
+
+    vertices: int
+    tets: int
+    bodies: int
+
+    @staticmethod
+    def rounded(count, smallest):
+        size = max(count, smallest)
+        step = max(1, (1 << (size - 1).bit_length()) // 8)
+        return -(-size // step) * step
+
+    @classmethod
+    def fitting(cls, n_vertices, n_tets, n_bodies):
+        return cls(cls.rounded(n_vertices, 1024), cls.rounded(n_tets, 4096), cls.rounded(n_bodies, 4))
+
+
 @ti.data_oriented
 class Model:
     """Rest shape, per-tet constants, masses and materials of every body.
 
-    Fields (n vertices, m tets; float is f32 or f64 as chosen at fem.init):
+    Fields (n vertices, m tets, used of the capacity; float is f32 or f64 as chosen at fem.init):
         rest_positions (n, 3)   X, m
         tets (m, 4)             vertex ids, positively oriented
         Bm (m, 3x3)             inverse rest edge matrix, 1/m
@@ -42,26 +66,16 @@ class Model:
         corotational (m,)       1 where the tet's body uses corotational FEM
         mass (n,)               lumped mass, kg
         free (n,)               0 for pinned vertices, else 1
+        vertex_body (n,), tet_body (m,)   the body each belongs to
         adjacency_start (n+1,), adjacency (4m,)   vertex -> corner slots (4*tet + corner),
                                  so per-vertex sums gather instead of racing on atomics
+        vertex_count, tet_count, body_count ()    n, m and the number of bodies
     `version` counts live edits (method, material): what is derived from them checks it.
     """
 
-    def __init__(self, bodies, X, T, mass, free):
-        n, m = len(X), len(T)
-        self.bodies = bodies
-        self.n_vertices, self.n_tets = n, m
-        self.rest_positions_np, self.tets_np, self.mass_np = X, T, mass
-        self.surface = np.concatenate([b.surface for b in bodies])
-        self.tet_body = np.concatenate([np.full(b.tets.stop - b.tets.start, i, np.int32)
-                                        for i, b in enumerate(bodies)])
-        self.vertex_body = np.concatenate([np.full(b.vertices.stop - b.vertices.start, i, np.int32)
-                                           for i, b in enumerate(bodies)])
-        self.has_pins = bool((free == 0).any())
-        Dm = np.stack([X[T[:, k]] - X[T[:, 3]] for k in range(3)], axis=2)
-        order = np.argsort(T.ravel(), kind="stable")
-        start = np.searchsorted(T.ravel()[order], np.arange(n + 1))
-
+    def __init__(self, capacity):
+        n, m, nb = capacity.vertices, capacity.tets, capacity.bodies
+        self.capacity = capacity
         self.rest_positions = ti.Vector.field(3, float, n)
         self.tets = ti.Vector.field(4, ti.i32, m)
         self.Bm = ti.Matrix.field(3, 3, float, m)
@@ -71,21 +85,56 @@ class Model:
         self.corotational = ti.field(ti.i32, m)
         self.mass = ti.field(float, n)
         self.free = ti.field(float, n)
+        self.vertex_body = ti.field(ti.i32, n)
+        self.tet_body = ti.field(ti.i32, m)
         self.adjacency_start = ti.field(ti.i32, n + 1)
         self.adjacency = ti.field(ti.i32, 4 * m)
+        self.vertex_count = ti.field(ti.i32, ())
+        self.tet_count = ti.field(ti.i32, ())
+        self.body_count = ti.field(ti.i32, ())
+        assert nb >= 1
 
-        self.rest_positions.from_numpy(X)
-        self.tets.from_numpy(T)
-        self.Bm.from_numpy(np.linalg.inv(Dm))
-        self.rest_volume.from_numpy(np.abs(np.linalg.det(Dm)) / 6)
-        self.mass.from_numpy(mass)
-        self.free.from_numpy(free)
-        self.adjacency_start.from_numpy(start.astype(np.int32))
-        self.adjacency.from_numpy(order.astype(np.int32))
+    def load(self, bodies, X, T, mass, free):
+        """Fill the fields with a scene's bodies, rest positions X (n, 3), tets T (m, 4),
+        lumped masses (n,) and free flags (n,) (fem.builder.model_arrays)."""
+        n, m = len(X), len(T)
+        self.bodies = bodies
+        self.n_vertices, self.n_tets = n, m
+        self.rest_positions_np, self.tets_np, self.mass_np, self.free_np = X, T, mass, free
+        self.surface = np.concatenate([b.surface for b in bodies])
+        self.tet_body_np = np.concatenate([np.full(b.tets.stop - b.tets.start, i, np.int32)
+                                           for i, b in enumerate(bodies)])
+        self.vertex_body_np = np.concatenate([np.full(b.vertices.stop - b.vertices.start, i, np.int32)
+                                              for i, b in enumerate(bodies)])
+        self.has_pins = bool((free == 0).any())
+        Dm = np.stack([X[T[:, k]] - X[T[:, 3]] for k in range(3)], axis=2)
+        order = np.argsort(T.ravel(), kind="stable")
+        start = np.searchsorted(T.ravel()[order], np.arange(n + 1))
+
+        self.vertex_count[None], self.tet_count[None], self.body_count[None] = n, m, len(bodies)
+        self.write(self.rest_positions, X)
+        self.write(self.tets, T)
+        self.write(self.Bm, np.linalg.inv(Dm))
+        self.write(self.rest_volume, np.abs(np.linalg.det(Dm)) / 6)
+        self.write(self.mass, mass)
+        self.write(self.free, free)
+        self.write(self.vertex_body, self.vertex_body_np)
+        self.write(self.tet_body, self.tet_body_np)
+        self.write(self.adjacency_start, start.astype(np.int32), pad=start[-1])
+        self.write(self.adjacency, order.astype(np.int32))
         self.version = 0
         for i, b in enumerate(bodies):
             self.set_material(i, b.material)
             self.set_method(i, b.method)
+
+    @staticmethod
+    def write(field, values, pad=0):
+        """field <- values (numpy, the first len(values) rows); the rows beyond get `pad`."""
+        rows = field.shape[0]
+        values = np.asarray(values)
+        full = np.full((rows,) + values.shape[1:], pad, dtype=values.dtype)
+        full[:len(values)] = values
+        field.from_numpy(full)
 
     # ------------------------------------------------------------ live edits: the one path
 
@@ -140,12 +189,12 @@ class Model:
 
 @ti.data_oriented
 class State:
-    """Positions x (n, 3) in m and velocities v (n, 3) in m/s."""
+    """Positions x and velocities v (capacity, 3), of which the model's first n are in use (m, m/s)."""
 
-    def __init__(self, n):
-        self.x = ti.Vector.field(3, float, n)
-        self.v = ti.Vector.field(3, float, n)
+    def __init__(self, capacity):
+        self.x = ti.Vector.field(3, float, capacity)
+        self.v = ti.Vector.field(3, float, capacity)
 
     def load(self, x, v):
-        self.x.from_numpy(x)
-        self.v.from_numpy(v)
+        Model.write(self.x, x)
+        Model.write(self.v, v)

@@ -16,12 +16,10 @@ from dataclasses import asdict, replace
 import numpy as np
 import taichi as ti
 
-from fem.builder import build_model, initial_state
+from fem import pool
+from fem.builder import initial_state, model_arrays
 from fem.errors import FemError
-from fem.measure import Measure
-from fem.model import State
 from fem.scene import METHODS, Material, select_vertices
-from fem.solver import ImplicitSolver
 
 
 @ti.kernel
@@ -51,10 +49,9 @@ class Simulation:
         settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
         settings.check(scene.path or scene.name)
         self.scene = scene                      # the description; never edited
-        self.model = build_model(scene)
-        self.state, self.spare = State(self.model.n_vertices), State(self.model.n_vertices)
-        self.solver = ImplicitSolver(self.model, scene.effects, settings)
-        self.measure = Measure(self.model, self.solver.quaternions, scene.effects.gravity)
+        parts = pool.borrow(self, model_arrays(scene), scene.effects, settings)   # compiled already?
+        self.model, self.solver, self.measure = parts.model, parts.solver, parts.measure
+        self.state, self.spare = parts.states
         offsets = [b.vertices.start for b in self.model.bodies]
         self.impulses = []
         for k, imp in enumerate(scene.impulses):
@@ -119,6 +116,10 @@ class Simulation:
         if len(ids):
             add_velocity(self.state.v, self.model.free, ids, dv)
 
+    def set_state(self, x, v):
+        """Replace the positions x (m) and velocities v (m/s), (n, 3) numpy each."""
+        self.state.load(np.asarray(x, np.float64), np.asarray(v, np.float64))
+
     def set_method(self, method, body=None):
         """Switch one body (or all) between linear and corotational, live."""
         if method not in METHODS:
@@ -139,7 +140,7 @@ class Simulation:
         if x is None:
             work.copy_state(self.state.x, self.state.v, work.x, work.v)
         else:
-            work.x.from_numpy(np.asarray(x, np.float64))
+            self.model.write(work.x, np.asarray(x, np.float64))
             work.v.fill(0.0)
         return work
 
@@ -147,8 +148,9 @@ class Simulation:
         """(m, 3, 3) the rotation R of every tet at positions x, as the solver extracts it
         (identity for linear tets); leaves the solver's rotations there."""
         self.solver.update_rotations(self._work(x).x, self.model.any_corotational)
-        rotated_Bm = self.solver.rotated_Bm.to_numpy().astype(np.float64)
-        Dm = np.linalg.inv(self.solver.model.Bm.to_numpy().astype(np.float64))
+        m = self.model.n_tets
+        rotated_Bm = self.solver.rotated_Bm.to_numpy()[:m].astype(np.float64)
+        Dm = np.linalg.inv(self.model.Bm.to_numpy()[:m].astype(np.float64))
         return np.transpose(Dm @ rotated_Bm, (0, 2, 1))            # R = (Dm Bm R^T)^T
 
     def forces(self, x=None):
@@ -156,7 +158,7 @@ class Simulation:
         work = self._work(x)
         self.solver.update_rotations(work.x, self.model.any_corotational)
         self.solver.elastic_forces(work.x, self.solver.Ap)
-        return self.solver.Ap.to_numpy().astype(np.float64)
+        return self.solver.Ap.to_numpy()[:self.model.n_vertices].astype(np.float64)
 
     def energy(self, x=None):
         """Elastic energy Psi(x) (J, float64) at positions x (None: the current ones)."""
@@ -175,11 +177,11 @@ class Simulation:
 
     def positions(self):
         """(n, 3) float64 vertex positions, m."""
-        return self.state.x.to_numpy().astype(np.float64)
+        return self.state.x.to_numpy()[:self.model.n_vertices].astype(np.float64)
 
     def velocities(self):
         """(n, 3) float64 vertex velocities, m/s."""
-        return self.state.v.to_numpy().astype(np.float64)
+        return self.state.v.to_numpy()[:self.model.n_vertices].astype(np.float64)
 
     def stats(self):
         """The last step's numbers plus energies (J), volume ratios and inverted tets now."""
@@ -194,4 +196,5 @@ class Simulation:
         """Per-tet (volume ratio J, strain energy density J/m^3), for colouring; (m,) each."""
         work = self._work()
         self.measure.measure(work.x, work.v)
-        return self.measure.tet_volume_ratio.to_numpy(), self.measure.tet_energy_density.to_numpy()
+        m = self.model.n_tets
+        return self.measure.tet_volume_ratio.to_numpy()[:m], self.measure.tet_energy_density.to_numpy()[:m]

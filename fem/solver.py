@@ -86,27 +86,44 @@ class StepInfo:
     solve_ms: float
 
 
+@dataclass(frozen=True)
+class Switches:
+    """What a solver compiles in or out: the effects a scene calls for (gravity, ground,
+    stiffness damping, pins), and whether its loops run on one thread (small meshes)."""
+
+    gravity: bool
+    ground: bool
+    stiffness_damping: bool
+    pins: bool
+    serial_tets: bool
+    serial_vertices: bool
+
+    @classmethod
+    def of(cls, effects, n_vertices, n_tets, has_pins):
+        return cls(effects.gravity is not None, effects.ground is not None, effects.beta > 0, has_pins,
+                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"))
+
+
 @ti.data_oriented
 class ImplicitSolver:
     """Work fields and kernels of the implicit step for one model; `step` is the whole step.
 
-    settings: the SolverSettings object, read at every step (a window may change it live).
+    Made once per Model and `Switches` (fem/pool.py), then `load`ed for each scene.
     """
 
-    def __init__(self, model, effects, settings):
-        n, m, nb = model.n_vertices, model.n_tets, len(model.bodies)
-        self.model, self.settings = model, settings
-        self.alpha, self.beta_damping = effects.alpha, effects.beta
-        self.has_gravity = effects.gravity is not None       # compile-time switches
-        self.gravity = effects.gravity or (0.0, 0.0, 0.0)     # m/s^2
-        self.has_ground = effects.ground is not None
-        self.ground = effects.ground or 0.0                   # plane height y, m
-        self.friction = effects.friction
-        self.has_stiffness_damping = effects.beta > 0         # D includes beta K_n
-        self.pins = model.has_pins
-        self.serial_tets = serial_loops(m, "tets")            # small loops on one thread
-        self.serial_vertices = serial_loops(n, "vertices")
+    def __init__(self, model, switches):
+        n, m, nb = model.capacity.vertices, model.capacity.tets, model.capacity.bodies
+        self.model, self.switches = model, switches
+        self.has_gravity, self.has_ground = switches.gravity, switches.ground     # compile-time switches
+        self.has_stiffness_damping = switches.stiffness_damping                   # D includes beta K_n
+        self.pins = switches.pins
+        self.serial_tets, self.serial_vertices = switches.serial_tets, switches.serial_vertices
         vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
+        self.mass_damping = ti.field(float, ())               # alpha, 1/s
+        self.stiffness_damping = ti.field(float, ())          # beta, s
+        self.gravity = ti.Vector.field(3, float, ())          # m/s^2
+        self.ground = ti.field(float, ())                     # plane height y, m
+        self.friction = ti.field(float, ())                   # share of tangential velocity lost on contact
         self.rotated_Bm = ti.Matrix.field(3, 3, float, m)     # Bm R^T at the current iterate
         self.damping_Bm = ti.Matrix.field(3, 3, float, m if self.has_stiffness_damping else 1)  # Bm R_n^T
         self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
@@ -122,7 +139,6 @@ class ImplicitSolver:
         self.block_inverse = ti.Matrix.field(3, 3, float, n)  # Jacobi preconditioner: inverse 3x3 blocks of H
         self.contact = ti.field(ti.i32, n if self.has_ground else 1)   # 1: on the ground this step
         self.pressed = ti.field(ti.i32, n if self.has_ground else 1)   # 1: the ground pushed it last step
-        self.vertex_body = ti.field(ti.i32, n)
         self.body_floor = ti.field(ti.f64, nb)                # (N s)^2: round-off floor of |grad_b|^2
         self.body_scale = ti.field(ti.f64, nb)                # (N s)^2: s_b^2 of this step
         self.body_weight = ti.field(float, nb)                # 1 / (tol^2 s_b^2 + floor_b)
@@ -137,19 +153,28 @@ class ImplicitSolver:
         self.body_mass = ti.field(ti.f64, nb)                 # kg (free vertices only)
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)   # kg m/s
         self.body_pinned = ti.field(ti.i32, nb)               # 1: the body has pinned vertices
-        self.body_pinned.from_numpy(np.array([int((model.free.to_numpy()[b.vertices] == 0).any())
-                                              for b in model.bodies], np.int32))
         self.rz = ti.field(float, ())                         # PCG scalars stay on the device
         self.rr = ti.field(float, ())
         self.cg_beta = ti.field(float, ())
         self.iterations = ti.field(ti.i32, ())
         self.active = ti.field(ti.i32, ())                    # 1 while PCG iterates
         self.dt = ti.field(float, ())                         # s, of the step under way
-        self.vertex_body.from_numpy(model.vertex_body)
+
+    def load(self, effects, settings):
+        """Start on the model's current scene: its effects' values and the solver settings
+        (read at every step: a window may change them live)."""
+        model = self.model
+        assert Switches.of(effects, model.n_vertices, model.n_tets, model.has_pins) == self.switches
+        self.effects, self.settings = effects, settings
+        self.mass_damping[None], self.stiffness_damping[None] = effects.alpha, effects.beta
+        self.gravity[None] = effects.gravity or (0.0, 0.0, 0.0)
+        self.ground[None] = effects.ground or 0.0
+        self.friction[None] = effects.friction
+        self.model.write(self.body_pinned, np.array([int((self.model.free_np[b.vertices] == 0).any())
+                                                     for b in self.model.bodies], np.int32))
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioner_key = None
         self.omega_key, self.omega = None, None
-        self.rotated = False                                  # rotated_Bm holds rotations (not Bm)
         self.reset()
 
     def reset(self):
@@ -162,7 +187,7 @@ class ImplicitSolver:
 
     def coefficients(self, dt):
         """(cM, cK) of H = cM M + cK K: backward Euler with Rayleigh damping."""
-        return 1 + dt * self.alpha, dt * self.beta_damping + dt * dt
+        return 1 + dt * self.effects.alpha, dt * self.effects.beta + dt * dt
 
     def step(self, state_in, state_out, dt):
         """One backward Euler step from state_in into state_out; returns a StepInfo.
@@ -260,8 +285,8 @@ class ImplicitSolver:
         if (self.model.version, dt) != self.model_version:
             self.model_version = (self.model.version, dt)
             self.preconditioner_key = self.omega_key = None
-            self.body_floor.from_numpy(self.model.body_floor(ROUNDOFF * epsilon(), dt))
-            self.body_speed_floor.from_numpy(self.model.body_speed_floor(ROUNDOFF * epsilon(), dt))
+            self.model.write(self.body_floor, self.model.body_floor(ROUNDOFF * epsilon(), dt))
+            self.model.write(self.body_speed_floor, self.model.body_speed_floor(ROUNDOFF * epsilon(), dt))
             if not self.model.any_corotational and self.rotated:
                 self.reset_rotations()                        # every body switched to linear: unrotate
                 self.rotated = False
@@ -308,7 +333,7 @@ class ImplicitSolver:
         if key != self.omega_key:
             self.build_preconditioner(cM, cK)
             self.preconditioner_key = None
-            P = self.block_inverse.to_numpy()
+            P = self.block_inverse.to_numpy()[:self.model.n_vertices]
             u = np.random.default_rng(0).standard_normal((self.model.n_vertices, 3))
             lam = 1.0
             for _ in range(30):
@@ -320,10 +345,10 @@ class ImplicitSolver:
 
     def apply_matrix(self, u, cM, cK):
         """H u for a (n, 3) numpy array u with the current rotations (for checks and tests)."""
-        self.p.from_numpy(u)
+        self.model.write(self.p, u)
         self.stiffness_product(self.p)
         self.matrix_product(self.p, self.Ap, cM, cK)
-        return self.Ap.to_numpy().astype(np.float64)
+        return self.Ap.to_numpy()[:self.model.n_vertices].astype(np.float64)
 
     # ------------------------------------------------------------ per-tet kernels
 
@@ -331,7 +356,7 @@ class ImplicitSolver:
     def reset_rotations(self):
         """Every tet unrotated: R = I and rotated_Bm = Bm (what linear tets always use)."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
             self.rotated_Bm[e] = self.model.Bm[e]
             self.twist[e] = 0.0
@@ -355,7 +380,7 @@ class ImplicitSolver:
         """
         left = 0
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             self.needs_svd[e] = 0
             if self.model.corotational[e]:
                 if ti.static(svd):
@@ -378,7 +403,7 @@ class ImplicitSolver:
     def svd_rotations(self, x: ti.template(), newton: ti.i32):
         """The polar rotation from the SVD (`polar_rotation`) for the tets left by extract_rotations."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             if self.needs_svd[e]:
                 F = self.edges(x, e) @ self.model.Bm[e]
                 R = polar_rotation(F)
@@ -403,7 +428,7 @@ class ImplicitSolver:
     def freeze_damping_frame(self):
         """damping_Bm <- rotated_Bm: the damping stiffness K_n uses the rotations at the step's start."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             self.damping_Bm[e] = self.rotated_Bm[e]
 
     # Corotational FEM without a rotation in the inner loop: sigma is isotropic, so
@@ -428,7 +453,7 @@ class ImplicitSolver:
     def stiffness_product(self, u: ti.template()):
         """corner <- (K(R) u)_e per tet."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in range(self.model.n_tets):
+        for e in range(self.model.tet_count[None]):
             self.tet_stiffness(e, u, u, 0.0)
 
     @ti.func
@@ -447,14 +472,14 @@ class ImplicitSolver:
     def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float):
         """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             W = self.model.rest_volume[e]
             self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
             if ti.static(self.has_stiffness_damping):
                 B = self.damping_Bm[e]
                 dF = self.edges(v, e) @ B
                 eps = 0.5 * (dF + dF.transpose())
-                f = corner_forces(-dt * self.beta_damping * linear_stress(eps, self.model.mu[e], self.model.lam[e]),
+                f = corner_forces(-dt * self.stiffness_damping[None] * linear_stress(eps, self.model.mu[e], self.model.lam[e]),
                                   B, W)
                 for k in ti.static(range(4)):
                     self.corner[4 * e + k] += f[k]
@@ -464,14 +489,14 @@ class ImplicitSolver:
         """Psi(x) + dt beta/2 v^T K_n v, summed in float64 (J)."""
         total = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             W = ti.cast(self.model.rest_volume[e], ti.f64)
             mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
             F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
             total += W * energy_density(F, mu, lam, 1.0)
             if ti.static(self.has_stiffness_damping):
                 dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm[e], ti.f64)
-                total += ti.cast(dt * self.beta_damping, ti.f64) * W * energy_density(dF, mu, lam, 0.0)
+                total += ti.cast(dt * self.stiffness_damping[None], ti.f64) * W * energy_density(dF, mu, lam, 0.0)
         return total
 
     # ------------------------------------------------------------ per-vertex kernels
@@ -502,13 +527,13 @@ class ImplicitSolver:
 
     @ti.func
     def gravity_vector(self):
-        return ti.Vector(self.gravity, dt=float)
+        return self.gravity[None]
 
     @ti.kernel
     def copy_state(self, x_from: ti.template(), v_from: ti.template(), x_to: ti.template(),
                    v_to: ti.template()):
         ti.loop_config(serialize=self.serial_vertices)
-        for i in x_from:
+        for i in range(self.model.vertex_count[None]):
             x_to[i], v_to[i] = x_from[i], v_from[i]
 
     @ti.kernel
@@ -517,13 +542,13 @@ class ImplicitSolver:
         """The first Newton iterate: v = 0, except the normal velocity of vertices on the ground,
         prescribed so that they land on the plane (the ground's active set is chosen here)."""
         ti.loop_config(serialize=self.serial_vertices)
-        for i in x0:
+        for i in range(self.model.vertex_count[None]):
             u = ti.Vector.zero(float, 3)
             if ti.static(self.has_ground):
                 self.contact[i] = 0
-                if self.model.free[i] > 0 and (x0[i][1] + dt * v0[i][1] < self.ground or self.pressed[i]):
+                if self.model.free[i] > 0 and (x0[i][1] + dt * v0[i][1] < self.ground[None] or self.pressed[i]):
                     self.contact[i] = 1
-                    u[1] = (self.ground - x0[i][1]) / dt
+                    u[1] = (self.ground[None] - x0[i][1]) / dt
             self.velocity[i] = u
             v[i] = u
             x[i] = x0[i] + dt * u
@@ -532,20 +557,20 @@ class ImplicitSolver:
     def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, first: ti.template()):
         """rhs <- -grad E = M v_n + dt M g - (1 + dt alpha) M v - (gathered tet terms), and the
         per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2."""
-        for b in self.body_gradient:
+        for b in range(self.model.body_count[None]):
             self.body_gradient[b] = 0.0
             if ti.static(first):
                 self.body_scale[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.rhs:
+        for i in range(self.model.vertex_count[None]):
             m = self.model.mass[i]
             g = ti.Vector.zero(float, 3)
             if ti.static(self.has_gravity):
                 g = dt * m * self.gravity_vector()
             tets = self.gather(i)
-            rhs = m * v0[i] + g - (1.0 + dt * self.alpha) * m * v[i] - tets
+            rhs = m * v0[i] + g - (1.0 + dt * self.mass_damping[None]) * m * v[i] - tets
             self.rhs[i] = rhs
-            b = self.vertex_body[i]
+            b = self.model.vertex_body[i]
             self.body_gradient[b] += ti.cast(self.filtered(i, rhs).norm_sqr(), ti.f64)
             if ti.static(first):   # |M v_n|^2 + |dt f|^2 + |dt M g|^2: not |rhs|^2, which is ~0 at rest
                 self.body_scale[b] += ti.cast(self.filtered(i, m * v0[i]).norm_sqr()
@@ -558,7 +583,7 @@ class ImplicitSolver:
         converged, relative to its own scale s_b or below its round-off floor."""
         rho = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
-        for b in self.body_gradient:
+        for b in range(self.model.body_count[None]):
             if ti.static(first):
                 self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]
                                                      + self.body_floor[b]), float)
@@ -576,10 +601,10 @@ class ImplicitSolver:
         """1/2 |v - v_n|_M^2 + dt alpha/2 |v|_M^2 - dt v^T M g, summed in float64 (J)."""
         total = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=self.serial_vertices)
-        for i in v:
+        for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
             u, u0 = ti.cast(v[i], ti.f64), ti.cast(v0[i], ti.f64)
-            total += 0.5 * m * ((u - u0).norm_sqr() + dt * self.alpha * u.norm_sqr())
+            total += 0.5 * m * ((u - u0).norm_sqr() + dt * self.mass_damping[None] * u.norm_sqr())
             if ti.static(self.has_gravity):
                 total -= dt * m * u.dot(ti.cast(self.gravity_vector(), ti.f64))
         return total
@@ -592,17 +617,17 @@ class ImplicitSolver:
     def velocity_change(self, a: float, tolerance: ti.f64) -> ti.f64:
         """sum_b |a d_b|_M^2 / (tol^2 |v_b|_M^2 + floor_b): <= 1 exactly when no body's velocity
         moved by more than tol of its size (or by round-off) in the last Newton iteration."""
-        for b in self.body_change:
+        for b in range(self.model.body_count[None]):
             self.body_change[b], self.body_momentum[b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.velocity:
+        for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
-            b = self.vertex_body[i]
+            b = self.model.vertex_body[i]
             self.body_change[b] += m * ti.cast(a * self.solution[i], ti.f64).norm_sqr()
             self.body_momentum[b] += m * ti.cast(self.velocity[i], ti.f64).norm_sqr()
         change = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
-        for b in self.body_change:
+        for b in range(self.model.body_count[None]):
             change += self.body_change[b] / (tolerance * tolerance * self.body_momentum[b] + self.body_speed_floor[b])
         return change
 
@@ -620,27 +645,23 @@ class ImplicitSolver:
         """out[b] <- kinetic + elastic + gravitational energy of body b (J, float64),
         elastic with the rotations extracted at x; size[b] <- the sum of the sizes of its
         terms (J), the scale of its round-off."""
-        for b in out:
+        for b in range(self.model.body_count[None]):
             out[b], size[b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
             psi = ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
                 F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
-            out[self.model_tet_body(e)] += psi
-            size[self.model_tet_body(e)] += psi
+            out[self.model.tet_body[e]] += psi
+            size[self.model.tet_body[e]] += psi
         ti.loop_config(serialize=self.serial_vertices)
-        for i in x:
+        for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
             kinetic, potential = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr(), ti.cast(0.0, ti.f64)
             if ti.static(self.has_gravity):
                 potential = -m * ti.cast(self.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
-            out[self.vertex_body[i]] += kinetic + potential
-            size[self.vertex_body[i]] += kinetic + ti.abs(potential)
-
-    @ti.func
-    def model_tet_body(self, e):
-        return self.vertex_body[self.model.tets[e][0]]
+            out[self.model.vertex_body[i]] += kinetic + potential
+            size[self.model.vertex_body[i]] += kinetic + ti.abs(potential)
 
     @ti.kernel
     def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template()) -> ti.i32:
@@ -648,25 +669,25 @@ class ImplicitSolver:
         its kinetic energy falls by the rise. Where the rise exceeds that kinetic energy (a body
         nearly at rest in a non-convex state), the body stays where it was, at rest.
         Returns how many bodies were limited."""
-        for b in self.body_mass:
+        for b in range(self.model.body_count[None]):
             self.body_mass[b] = 0.0
             self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
             self.body_change[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
-        for i in v:
+        for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
-            b = self.vertex_body[i]
+            b = self.model.vertex_body[i]
             self.body_mass[b] += m
             self.body_momentum_vector[b] += m * ti.cast(v[i], ti.f64)
         ti.loop_config(serialize=self.serial_vertices)
-        for i in v:     # kinetic energy of the motion relative to the centre of mass
-            b = self.vertex_body[i]
+        for i in range(self.model.vertex_count[None]):     # kinetic energy of the motion relative to the centre of mass
+            b = self.model.vertex_body[i]
             m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
             u = ti.cast(v[i], ti.f64) - self.centre_velocity(b)
             self.body_change[b] += 0.5 * m * u.norm_sqr()
         limited = 0
         ti.loop_config(serialize=True)
-        for b in self.body_change:
+        for b in range(self.model.body_count[None]):
             rise = self.energy_after[b] - self.energy_before[b]
             noise = ti.static(ROUNDOFF * epsilon()) * ti.max(self.energy_size_before[b], self.energy_size_after[b])
             scale = ti.cast(1.0, ti.f64)
@@ -678,8 +699,8 @@ class ImplicitSolver:
                     scale = -1.0                 # cannot be absorbed: keep x_n, at rest
             self.body_change[b] = scale          # reused: the factor per body
         ti.loop_config(serialize=self.serial_vertices)
-        for i in v:
-            b = self.vertex_body[i]
+        for i in range(self.model.vertex_count[None]):
+            b = self.model.vertex_body[i]
             if self.body_change[b] < 0.0:
                 c = ti.cast(self.centre_velocity(b), float) * self.model.free[i]
                 x[i], v[i] = x0[i] + self.dt[None] * c, c
@@ -694,22 +715,22 @@ class ImplicitSolver:
         """Shift each unpinned body's velocity uniformly so that its momentum is exactly backward
         Euler's, (1 + dt alpha) sum m v = sum m v_n + dt M g: an inexact Newton solve leaves a
         residual whose sum is not zero, and internal forces can never change momentum."""
-        for b in self.body_mass:
+        for b in range(self.model.body_count[None]):
             self.body_mass[b] = 0.0
             self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
         ti.loop_config(serialize=self.serial_vertices)
-        for i in v:
+        for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
-            b = self.vertex_body[i]
+            b = self.model.vertex_body[i]
             g = ti.Vector.zero(ti.f64, 3)
             if ti.static(self.has_gravity):
                 g = dt * ti.cast(self.gravity_vector(), ti.f64)
             self.body_mass[b] += m
-            self.body_momentum_vector[b] += m * ((ti.cast(v0[i], ti.f64) + g) / (1.0 + dt * self.alpha)
+            self.body_momentum_vector[b] += m * ((ti.cast(v0[i], ti.f64) + g) / (1.0 + dt * self.mass_damping[None])
                                                  - ti.cast(v[i], ti.f64))
         ti.loop_config(serialize=self.serial_vertices)
-        for i in v:
-            b = self.vertex_body[i]
+        for i in range(self.model.vertex_count[None]):
+            b = self.model.vertex_body[i]
             if self.body_pinned[b] == 0 and self.body_mass[b] > 0:
                 u = ti.cast(self.body_momentum_vector[b] / self.body_mass[b], float)
                 v[i] += u
@@ -727,7 +748,7 @@ class ImplicitSolver:
         """grad E . d (J): negative when the direction d descends."""
         total = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.rhs:
+        for i in range(self.model.vertex_count[None]):
             total -= ti.cast(self.filtered(i, self.rhs[i]).dot(self.solution[i]), ti.f64)
         return total
 
@@ -735,7 +756,7 @@ class ImplicitSolver:
     def try_step(self, x0: ti.template(), x: ti.template(), v: ti.template(), a: float, dt: float):
         """v <- velocity + a d, x <- x_n + dt v: a point on the Newton direction."""
         ti.loop_config(serialize=self.serial_vertices)
-        for i in x:
+        for i in range(self.model.vertex_count[None]):
             u = self.velocity[i] + a * self.solution[i]
             v[i] = u
             x[i] = x0[i] + dt * u
@@ -743,14 +764,14 @@ class ImplicitSolver:
     @ti.kernel
     def accept(self, v: ti.template()):
         ti.loop_config(serialize=self.serial_vertices)
-        for i in v:
+        for i in range(self.model.vertex_count[None]):
             self.velocity[i] = v[i]
 
     @ti.kernel
     def start_direction(self, v0: ti.template(), warm: ti.template()):
         """d <- filtered v_n - v (first Newton iteration: today's velocity is a good guess) or 0."""
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.solution:
+        for i in range(self.model.vertex_count[None]):
             d = ti.Vector.zero(float, 3)
             if ti.static(warm):
                 d = self.filtered(i, v0[i] - self.velocity[i])
@@ -760,7 +781,7 @@ class ImplicitSolver:
     def build_preconditioner(self, cM: float, cK: float):
         """block_inverse <- inverse of the 3x3 diagonal blocks of H = cM M + cK K(R)."""
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.block_inverse:
+        for i in range(self.model.vertex_count[None]):
             # a pinned vertex keeps an identity block, so the inverse exists even where mass is 0
             block = (cM * self.model.mass[i] + 1.0 - self.model.free[i]) * ti.Matrix.identity(float, 3)
             for j in range(self.model.adjacency_start[i], self.model.adjacency_start[i + 1]):
@@ -782,13 +803,13 @@ class ImplicitSolver:
         Returns the weighted residual sum_i w_b(i) |r_i|^2."""
         rz, rr = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.r:
+        for i in range(self.model.vertex_count[None]):
             r = self.filtered(i, self.rhs[i]) - self.apply_H(i, self.solution, cM, cK)
             z = self.filtered(i, self.block_inverse[i] @ r)
             self.r[i], self.z[i] = r, z
             self.p[i] = ti.Vector.zero(float, 3)
             rz += r.dot(z)
-            rr += self.body_weight[self.vertex_body[i]] * r.dot(r)
+            rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
         self.rz[None] = rz
         self.rr[None] = rr
         self.cg_beta[None] = 0.0
@@ -806,7 +827,7 @@ class ImplicitSolver:
         done, `active` drops to 0 and the remaining passes loop over nothing, so the
         iteration count is exact while Python launches one kernel per `unroll`.
         """
-        n_tets, n = self.model.n_tets, self.model.n_vertices
+        n_tets, n = self.model.tet_count[None], self.model.vertex_count[None]
         for _ in ti.static(range(unroll)):
             on = self.active[None]
             beta = self.cg_beta[None]
@@ -832,7 +853,7 @@ class ImplicitSolver:
                 z = self.filtered(i, self.block_inverse[i] @ r)
                 self.r[i], self.z[i] = r, z
                 rz += r.dot(z)
-                rr += self.body_weight[self.vertex_body[i]] * r.dot(r)
+                rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
             if on:
                 self.cg_beta[None] = 0.0
                 if self.rz[None] > 0:
@@ -849,10 +870,10 @@ class ImplicitSolver:
         |rhs - H d|^2 before the update."""
         rr = 0.0
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.r:
+        for i in range(self.model.vertex_count[None]):
             r = self.filtered(i, self.rhs[i]) - self.apply_H(i, self.solution, cM, cK)
             self.solution[i] += omega * self.filtered(i, self.block_inverse[i] @ r)
-            rr += self.body_weight[self.vertex_body[i]] * r.dot(r)
+            rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
         return rr
 
     @ti.kernel
@@ -860,7 +881,7 @@ class ImplicitSolver:
         """The count of vertices with a non-finite position or velocity."""
         bad = 0
         ti.loop_config(serialize=self.serial_vertices)
-        for i in x:
+        for i in range(self.model.vertex_count[None]):
             if not is_finite(x[i].sum() + v[i].sum()):
                 bad += 1
         return bad
@@ -877,7 +898,7 @@ class ImplicitSolver:
     @ti.kernel
     def mark_pressed(self, cM: float, cK: float, newton: ti.template()):
         ti.loop_config(serialize=self.serial_vertices)
-        for i in self.pressed:
+        for i in range(self.model.vertex_count[None]):
             self.pressed[i] = 0
             if self.contact[i]:
                 g = -self.rhs[i]
@@ -891,29 +912,29 @@ class ImplicitSolver:
         """Friction on the vertices in contact (removes part of the tangential velocity),
         and no vertex left below the plane."""
         ti.loop_config(serialize=self.serial_vertices)
-        for i in x:
-            if x[i][1] < self.ground:
+        for i in range(self.model.vertex_count[None]):
+            if x[i][1] < self.ground[None]:
                 self.pressed[i] = 1      # caught below the plane: in contact next step
-            if self.contact[i] or x[i][1] < self.ground:
-                x[i][1] = ti.max(x[i][1], self.ground)
+            if self.contact[i] or x[i][1] < self.ground[None]:
+                x[i][1] = ti.max(x[i][1], self.ground[None])
                 v[i][1] = ti.max(v[i][1], 0.0)
-                v[i][0] *= 1.0 - self.friction
-                v[i][2] *= 1.0 - self.friction
+                v[i][0] *= 1.0 - self.friction[None]
+                v[i][2] *= 1.0 - self.friction[None]
 
     @ti.kernel
     def matrix_product(self, u: ti.template(), out: ti.template(), cM: float, cK: float):
         """out <- H u, gathered from `corner` after stiffness_product(u)."""
         ti.loop_config(serialize=self.serial_vertices)
-        for i in out:
+        for i in range(self.model.vertex_count[None]):
             out[i] = self.apply_H(i, u, cM, cK)
 
     @ti.kernel
     def elastic_forces(self, x: ti.template(), out: ti.template()):
         """out <- f(x), the elastic force on every vertex (N), with the current rotations."""
         ti.loop_config(serialize=self.serial_tets)
-        for e in self.rotated_Bm:
+        for e in range(self.model.tet_count[None]):
             self.store_corners(e, corner_forces(self.elastic_stress(x, e), self.rotated_Bm[e],
                                                 self.model.rest_volume[e]))
         ti.loop_config(serialize=self.serial_vertices)
-        for i in out:
+        for i in range(self.model.vertex_count[None]):
             out[i] = self.gather(i)

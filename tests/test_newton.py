@@ -22,7 +22,7 @@ def test_one_newton_iteration_on_a_linear_body_is_the_exact_linear_solve(f64):
     rng = np.random.default_rng(3)
     X = sim.positions()
     x0, v0 = X + 0.05 * rng.standard_normal(X.shape), rng.standard_normal(X.shape)
-    sim.state.load(x0, v0)
+    sim.set_state(x0, v0)
 
     info = sim.step()
 

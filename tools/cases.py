@@ -192,7 +192,7 @@ def mirror_inverted(sim, layout):
                 s = sim.model.bodies[b].vertices
                 centre = x[s, 0].mean()
                 x[s, 0] = 2 * centre - x[s, 0]
-    sim.state.x.from_numpy(x)
+    sim.set_state(x, sim.velocities())
 
 
 def groups(cases=HARD_CASES):
@@ -291,7 +291,7 @@ def forced_failures(capture):
     capture()
     v = sim.velocities()
     v[3] = np.nan
-    sim.state.v.from_numpy(v)   # a user writing into the state
+    sim.set_state(sim.positions(), v)   # a user writing into the state
     before = sim.positions()
     nan = [sim.step() for _ in range(3)]
     return {"capped": capped, "nan": nan, "before": before, "after": sim.positions(), "stderr": capture()}

@@ -1,0 +1,59 @@
+"""Kernels compile once per process: a Simulation borrows its Taichi fields from here.
+
+Taichi compiles a kernel once for every object whose fields it reads: a Simulation
+with fields of its own would compile the whole step again, seconds before its first
+step. So a Simulation borrows a set of `Parts` (Model, ImplicitSolver, Measure and two
+States) sized to a `Capacity` and compiled for its `Switches`, and gives them back
+when it is dropped; the next Simulation with the same effects and a mesh of about the
+same size reuses them, kernels already compiled. The same sizes in a later process
+also find Taichi's offline cache, so a warm start compiles nothing.
+
+A Simulation's parts belong to it while it lives: keep the Simulation, not its model.
+"""
+
+import weakref
+from collections import defaultdict
+from dataclasses import dataclass
+
+from fem.measure import Measure
+from fem.model import Capacity, Model, State
+from fem.solver import ImplicitSolver, Switches
+
+_idle = defaultdict(list)          # (Capacity, Switches) -> Parts nobody uses
+made = {"parts": 0}                # how many Parts this process has made (tests count compilations with it)
+
+
+@dataclass
+class Parts:
+    model: Model
+    solver: ImplicitSolver
+    measure: Measure
+    states: tuple
+
+
+def borrow(owner, arrays, effects, settings):
+    """Parts for a scene's model arrays (fem.builder.model_arrays), Effects and
+    SolverSettings, loaded with them; they go back to the pool when `owner` is
+    garbage-collected."""
+    bodies, X, T, mass, free = arrays
+    capacity = Capacity.fitting(len(X), len(T), len(bodies))
+    key = (capacity, Switches.of(effects, len(X), len(T), bool((free == 0).any())))
+    parts = _idle[key].pop() if _idle[key] else make(*key)
+    parts.model.load(*arrays)
+    parts.solver.load(effects, settings)
+    parts.measure.load(effects.gravity)
+    weakref.finalize(owner, _idle[key].append, parts)
+    return parts
+
+
+def make(capacity, switches):
+    model = Model(capacity)
+    solver = ImplicitSolver(model, switches)
+    made["parts"] += 1
+    return Parts(model, solver, Measure(model, solver.quaternions, switches),
+                 (State(capacity.vertices), State(capacity.vertices)))
+
+
+def clear():
+    """Forget every idle part: Taichi restarted (fem.init), their fields are gone."""
+    _idle.clear()
