@@ -92,6 +92,9 @@ def add_scene_options(p, scene_required=True):
                    help="every body uses linear FEM")
     m.add_argument("--corotational", dest="method", action="store_const", const="corotational",
                    help="every body uses corotational FEM")
+    m.add_argument("--naive", dest="method", action="store_const", const="corotational-naive",
+                   help="every body uses the tempting but wrong f = -R Ke R^T (x - X), for teaching "
+                        "(see docs/method.md; one linear solve per step)")
     p.add_argument("--solver", choices=["pcg", "jacobi"], help="linear solver (scene default: pcg)")
     p.add_argument("--tol", type=POSITIVE, help="relative residual tolerance of the solve")
     p.add_argument("--max-iters", type=COUNT, help="iteration cap of the solve")

@@ -100,7 +100,7 @@ def summary(sim, rows):
     rejected = sum(not r["finite"] for r in rows)
     lines.append(f"{len(rows)} steps to t = {sim.t:.3f} s: {statistics.median(ms):.2f} ms/step (median), "
                  f"{statistics.mean([r['newton_iters'] for r in rows] or [0]):.1f} Newton and "
-                 f"{statistics.mean(iters):.1f} solver iterations/step ({sim.settings.step} step), "
+                 f"{statistics.mean(iters):.1f} solver iterations/step ({sim.step_kind} step), "
                  f"{not_converged} steps not converged, {rejected} steps rejected")
     lines.append(f"energy: kinetic {final['kinetic_energy']:.4g} J, elastic {final['elastic_energy']:.4g} J, "
                  f"total {final['total_energy']:.4g} J; "

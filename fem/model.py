@@ -63,7 +63,7 @@ class Model:
         Bm (m, 3x3)             inverse rest edge matrix, 1/m
         rest_volume (m,)        W, m^3
         mu, lam (m,)            Lame parameters, Pa
-        corotational (m,)       1 where the tet's body uses corotational FEM
+        corotational (m,)       0 linear, 1 corotational, 2 the naive variant (NAIVE)
         mass (n,)               lumped mass, kg
         free (n,)               0 for pinned vertices, else 1
         vertex_body (n,), tet_body (m,)   the body each belongs to
@@ -151,18 +151,23 @@ class Model:
         self.version += 1
 
     def set_method(self, body, method):
-        """Switch one body between "linear" and "corotational" (takes effect next step)."""
+        """Switch one body between "linear", "corotational" and "corotational-naive" (next step)."""
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         info = self.bodies[body]
         info.method = method
         s = info.tets
-        self._fill_int(self.corotational, s.start, s.stop, int(method == "corotational"))
+        self._fill_int(self.corotational, s.start, s.stop, METHODS.index(method))
         self.version += 1
 
     @property
     def any_corotational(self):
-        return any(b.method == "corotational" for b in self.bodies)
+        """Some body needs rotations (the naive variant too)."""
+        return any(b.method != "linear" for b in self.bodies)
+
+    @property
+    def any_naive(self):
+        return any(b.method == "corotational-naive" for b in self.bodies)
 
     def body_floor(self, relative, dt):
         """Per body, the square of `relative` times dt E L^2 (N s): the impulse over a step of

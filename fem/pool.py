@@ -54,6 +54,14 @@ def make(capacity, switches):
                  (State(capacity.vertices), State(capacity.vertices)))
 
 
+def compiled_kernels():
+    """How many kernels Taichi has compiled (or loaded from its offline cache) in this
+    process for the engine: one per kernel and per set of parts it ran on."""
+    classes = (Model, ImplicitSolver, Measure)
+    kernels = [f for c in classes for f in vars(c).values() if hasattr(f, "_primal")]
+    return sum(len(k._primal.compiled_kernels) for k in kernels)
+
+
 def clear():
     """Forget every idle part: Taichi restarted (fem.init), their fields are gone."""
     _idle.clear()

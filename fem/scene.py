@@ -13,7 +13,9 @@ import numpy as np
 from fem.errors import FemError
 from fem.mesh import TetMesh, signed_volumes
 
-METHODS = ("linear", "corotational")
+# "corotational-naive" is the tempting but wrong f = -R Ke R^T (x - X): a teaching switch
+# (docs/method.md), forces under a pure rotation; it always takes the one-solve step.
+METHODS = ("linear", "corotational", "corotational-naive")
 SOLVERS = ("pcg", "jacobi")
 ROTATIONS = ("iterative", "svd")
 STEPS = ("newton", "single")

@@ -103,9 +103,15 @@ class Simulation:
                   "rejected it and kept the previous state", file=sys.stderr)
             self.warned_nonfinite = True
         self.last = {"step": self.steps, "t": self.t, "wall_ms": 1e3 * (time.perf_counter() - start),
-                     "solver": self.settings.method, "step_kind": self.settings.step, **asdict(info),
+                     "solver": self.settings.method, "step_kind": self.step_kind, **asdict(info),
                      "corotational": [b.method == "corotational" for b in self.model.bodies]}
         return self.last
+
+    @property
+    def step_kind(self):
+        """The step taken: the settings' "newton" or "single"; always "single" while some body
+        uses the naive variant, whose forces have no energy for Newton to minimise."""
+        return "single" if self.model.any_naive else self.settings.step
 
     # ------------------------------------------------------------ interaction: the one path for live edits
 

@@ -47,6 +47,7 @@ MAX_HALVINGS = 12        # line search: a >= 2^-12
 FORCING = 0.1            # inexact Newton: CG reduces the gradient by this factor (at least)
 ROUNDOFF = 30.0          # per-body floor of the stopping test, in units of the precision's epsilon
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
+NAIVE = 2                # Model.corotational of a tet of the naive variant (fem.scene.METHODS)
 
 
 @ti.func
@@ -200,7 +201,8 @@ class ImplicitSolver:
         start = time.perf_counter()
         settings, model = self.settings, self.model
         corotational = model.any_corotational
-        newton = settings.step == "newton" and corotational   # linear: one Newton iteration is exact
+        # linear: one Newton iteration is exact; the naive variant has no energy to minimise
+        newton = settings.step == "newton" and corotational and not model.any_naive
         cM, cK = self.coefficients(dt)
         self.refresh(cM, cK, dt)
         self.dt[None] = dt
@@ -298,7 +300,7 @@ class ImplicitSolver:
         if not corotational:
             return 0.0
         start = time.perf_counter()
-        newton = int(self.settings.step == "newton")
+        newton = int(self.settings.step == "newton" and not self.model.any_naive)   # twist stiffness
         if self.extract_rotations(x, self.settings.rotations == "svd", newton) > 0:
             self.svd_rotations(x, newton)
         self.rotated = True
@@ -463,9 +465,16 @@ class ImplicitSolver:
 
     @ti.func
     def elastic_stress(self, x: ti.template(), e):
-        """sigma(sym(F R^T) - I) of tet e at positions x: the stress in the tet's rotated frame (Pa)."""
+        """sigma(sym(F R^T) - I) of tet e at positions x: the stress in the tet's rotated frame (Pa).
+
+        The naive variant f = -R Ke R^T (x - X) rotates the rest shape too: its strain is
+        sym(R^T (F - I)), in this frame sym(F R^T) - sym(R^T), not zero under a pure rotation."""
         F = self.edges(x, e) @ self.rotated_Bm[e]               # F R^T
-        eps = 0.5 * (F + F.transpose()) - ti.Matrix.identity(float, 3)
+        unstrained = ti.Matrix.identity(float, 3)
+        if self.model.corotational[e] == NAIVE:
+            Rt = quaternion_matrix(self.quaternions[e]).transpose()
+            unstrained = 0.5 * (Rt + Rt.transpose())
+        eps = 0.5 * (F + F.transpose()) - unstrained
         return linear_stress(eps, self.model.mu[e], self.model.lam[e])
 
     @ti.kernel

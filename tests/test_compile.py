@@ -1,0 +1,46 @@
+"""Kernels compile once per process and kind of scene: a second Simulation starts at once."""
+
+import gc
+
+import numpy as np
+
+import fem
+from conftest import box_mesh, make_scene
+from fem import pool
+from fem.scene import Effects
+
+
+def exercise(sim):
+    """Everything a run, a stats file and a colour mode launch."""
+    for _ in range(3):
+        sim.step()
+    sim.stats()
+    sim.tet_values()
+    sim.apply_impulse([0], (0.1, 0.0, 0.0))
+
+
+def test_a_second_simulation_of_the_same_kind_compiles_nothing():
+    fem.init("cpu", "f32")
+    exercise(fem.Simulation(make_scene(box_mesh(2))))
+    gc.collect()
+    made, compiled = pool.made["parts"], pool.compiled_kernels()
+    assert compiled > 10
+
+    # another mesh and material, same effects: the first one's parts, already compiled
+    sim = fem.Simulation(make_scene(box_mesh(3), E=3e4, nu=0.45, position=(1, 0, 0)))
+    exercise(sim)
+    assert (pool.made["parts"], pool.compiled_kernels()) == (made, compiled)
+    assert np.isfinite(sim.positions()).all() and sim.model.n_tets == 6 * 27
+
+
+def test_another_kind_of_scene_compiles_its_own_kernels():
+    fem.init("cpu", "f32")
+    exercise(fem.Simulation(make_scene(box_mesh(2))))
+    gc.collect()
+    made, compiled = pool.made["parts"], pool.compiled_kernels()
+    alive = fem.Simulation(make_scene(box_mesh(2)))                      # the idle parts are in use now
+    with_gravity = fem.Simulation(make_scene(box_mesh(2), effects=Effects(gravity=(0.0, -9.81, 0.0))))
+    for sim in (alive, with_gravity):
+        exercise(sim)
+    assert pool.made["parts"] == made + 1            # `alive` reused the idle parts
+    assert pool.compiled_kernels() > compiled        # the gravity kind compiled its own
