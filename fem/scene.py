@@ -107,6 +107,7 @@ class SolverSettings:
     max_iterations: int = 200           # linear solver iterations per Newton iteration
     jacobi_omega: float | None = None   # None: chosen from a spectral estimate
     rotations: str = "iterative"        # "iterative" (warm-started, SVD when inverted) | "svd"
+    sleep: bool = True                  # a body at rest sleeps: no work for it until something wakes it
 
     def check(self, where):
         if not self.dt > 0:

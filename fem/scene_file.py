@@ -285,4 +285,5 @@ def read_solver(t):
     s.max_iterations = t.get("max_iterations", "int", s.max_iterations)
     s.jacobi_omega = t.get("jacobi_omega", "float", None)
     s.rotations = t.get("rotations", "str", s.rotations)
+    s.sleep = t.get("sleep", "bool", s.sleep)
     return s

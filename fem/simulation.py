@@ -20,6 +20,13 @@ from fem import pool
 from fem.builder import initial_state, model_arrays
 from fem.errors import FemError
 from fem.scene import METHODS, Material, select_vertices
+from fem.solver import StepInfo
+
+# A body sleeps after QUIET_STEPS steps in a row in which no vertex moved more than
+# QUIET_MOTION of the body's size: its velocities are set to 0 and steps leave it exactly
+# as it is, at no cost, until an impulse (a click), a new state, material or method wakes it.
+QUIET_STEPS = 25
+QUIET_MOTION = 1e-6
 
 
 @ti.kernel
@@ -61,12 +68,41 @@ class Simulation:
         self.warned_nonfinite = False
         self.reset()
 
+    # ------------------------------------------------------------ sleeping bodies
+
+    @property
+    def asleep(self):
+        """(bodies,) True for the bodies that sleep now."""
+        return [not a for a in self.awake]
+
+    def wake(self, bodies=None):
+        """Wake the given body ids (None: all); they move again from exactly where they rest."""
+        for b in range(len(self.model.bodies)) if bodies is None else bodies:
+            self.awake[b], self.quiet[b] = True, 0
+        self.solver.wake(self.awake)
+
+    def fall_asleep(self):
+        """After a step: count each awake body's quiet steps; put those quiet long enough to sleep."""
+        if not self.settings.sleep:
+            return
+        self.solver.body_speeds(self.state.v)
+        speed = np.sqrt(self.solver.body_speed.to_numpy()[:len(self.awake)])
+        for b, body in enumerate(self.model.bodies):
+            quiet = self.awake[b] and speed[b] * self.settings.dt <= QUIET_MOTION * body.size
+            self.quiet[b] = self.quiet[b] + 1 if quiet else 0
+            if self.quiet[b] >= QUIET_STEPS:
+                self.awake[b] = False
+                self.solver.hold(self.state.v, body.vertices.start, body.vertices.stop)
+        self.solver.wake(self.awake)
+
     # ------------------------------------------------------------ running
 
     def reset(self):
         """Back to t = 0 with the scene's initial conditions."""
         self.state.load(*initial_state(self.scene, self.model))
         self.solver.reset()
+        self.awake = [True] * len(self.model.bodies)
+        self.quiet = [0] * len(self.model.bodies)
         self.t = 0.0
         self.steps = 0
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
@@ -93,10 +129,15 @@ class Simulation:
         while self.pending and self.pending[0][0] <= self.t + 0.5 * dt:
             _, ids, dv = self.pending.pop(0)
             self.apply_impulse(ids, dv)
-        info = self.solver.step(self.state, self.spare, dt)
+        if any(self.awake):
+            info = self.solver.step(self.state, self.spare, dt)
+        else:                                   # everything sleeps: the step would change nothing
+            info = StepInfo(True, True, 0.0, 0, 0, 0, 0, 0.0, 0.0)
         self.steps += 1
         if info.finite:
-            self.state, self.spare = self.spare, self.state
+            if any(self.awake):
+                self.state, self.spare = self.spare, self.state
+                self.fall_asleep()
             self.t += dt
         elif not self.warned_nonfinite:
             print(f"warning: step {self.steps} (t = {self.t:g} s) gave non-finite values; "
@@ -104,7 +145,8 @@ class Simulation:
             self.warned_nonfinite = True
         self.last = {"step": self.steps, "t": self.t, "wall_ms": 1e3 * (time.perf_counter() - start),
                      "solver": self.settings.method, "step_kind": self.step_kind, **asdict(info),
-                     "corotational": [b.method == "corotational" for b in self.model.bodies]}
+                     "corotational": [b.method == "corotational" for b in self.model.bodies],
+                     "asleep": self.asleep}
         return self.last
 
     @property
@@ -120,11 +162,13 @@ class Simulation:
         ids = np.asarray(ids, np.int32).ravel()
         dv = np.broadcast_to(np.asarray(delta_v, np.float64), (len(ids), 3)).copy()
         if len(ids):
+            self.wake(np.unique(self.model.vertex_body_np[ids]).tolist())
             add_velocity(self.state.v, self.model.free, ids, dv)
 
     def set_state(self, x, v):
         """Replace the positions x (m) and velocities v (m/s), (n, 3) numpy each."""
         self.state.load(np.asarray(x, np.float64), np.asarray(v, np.float64))
+        self.wake()
 
     def set_method(self, method, body=None):
         """Switch one body (or all) between linear and corotational, live."""
@@ -132,10 +176,12 @@ class Simulation:
             raise FemError(f"method must be one of {METHODS}, got {method!r}")
         for i in range(len(self.model.bodies)) if body is None else [body]:
             self.model.set_method(i, method)
+        self.wake(None if body is None else [body])
 
     def set_material(self, body, E, nu):
         """Young's modulus E (Pa) and Poisson ratio nu of one body, live."""
         self.model.set_material(body, Material(E, nu, self.model.bodies[body].material.density))
+        self.wake([body])
 
     # ------------------------------------------------------------ the engine's maths, for checks
 
@@ -194,6 +240,7 @@ class Simulation:
         out = {"step": self.steps, "t": self.t, "solver": self.settings.method}
         out.update(self.last)
         out["corotational"] = [b.method == "corotational" for b in self.model.bodies]   # now, after toggles
+        out["asleep"] = self.asleep
         work = self._work()
         out.update(self.measure.read(work.x, work.v))
         return out

@@ -154,6 +154,8 @@ class ImplicitSolver:
         self.body_mass = ti.field(ti.f64, nb)                 # kg (free vertices only)
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)   # kg m/s
         self.body_pinned = ti.field(ti.i32, nb)               # 1: the body has pinned vertices
+        self.awake = ti.field(ti.i32, nb)                     # 0: the body sleeps, the step leaves it be
+        self.body_speed = ti.field(ti.f64, nb)                # largest |v_i|^2 of the body, (m/s)^2
         self.rz = ti.field(float, ())                         # PCG scalars stay on the device
         self.rr = ti.field(float, ())
         self.cg_beta = ti.field(float, ())
@@ -178,8 +180,13 @@ class ImplicitSolver:
         self.omega_key, self.omega = None, None
         self.reset()
 
+    def wake(self, awake):
+        """Which bodies the step moves: (bodies,) of 0 (asleep: left exactly as they are) or 1."""
+        self.model.write(self.awake, np.asarray(awake, np.int32))
+
     def reset(self):
-        """Forget everything from earlier steps: rotations, warm starts, ground contacts."""
+        """Forget everything from earlier steps: rotations, warm starts, ground contacts, sleep."""
+        self.wake(np.ones(len(self.model.bodies)))
         self.reset_rotations()
         self.rotated = False
         self.pressed.fill(0)
@@ -364,6 +371,10 @@ class ImplicitSolver:
             self.twist[e] = 0.0
 
     @ti.func
+    def tet_awake(self, e):
+        return self.awake[self.model.tet_body[e]]
+
+    @ti.func
     def edges(self, x: ti.template(), e):
         """Ds of tet e for the vertex values x (positions, velocities or directions)."""
         t = self.model.tets[e]
@@ -384,6 +395,8 @@ class ImplicitSolver:
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             self.needs_svd[e] = 0
+            if not self.tet_awake(e):            # a sleeping body keeps its rotations
+                continue
             if self.model.corotational[e]:
                 if ti.static(svd):
                     self.needs_svd[e] = 1
@@ -456,7 +469,8 @@ class ImplicitSolver:
         """corner <- (K(R) u)_e per tet."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
-            self.tet_stiffness(e, u, u, 0.0)
+            if self.tet_awake(e):
+                self.tet_stiffness(e, u, u, 0.0)
 
     @ti.func
     def store_corners(self, e, f: ti.template()):
@@ -482,7 +496,7 @@ class ImplicitSolver:
         """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
-            W = self.model.rest_volume[e]
+            W = self.model.rest_volume[e] * self.tet_awake(e)       # a sleeping body's tets add nothing
             self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
             if ti.static(self.has_stiffness_damping):
                 B = self.damping_Bm[e]
@@ -499,7 +513,7 @@ class ImplicitSolver:
         total = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
-            W = ti.cast(self.model.rest_volume[e], ti.f64)
+            W = ti.cast(self.model.rest_volume[e] * self.tet_awake(e), ti.f64)
             mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
             F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
             total += W * energy_density(F, mu, lam, 1.0)
@@ -527,7 +541,7 @@ class ImplicitSolver:
         if ti.static(self.has_ground):
             if self.contact[i]:
                 a[1] = 0.0
-        return a
+        return a * self.awake[self.model.vertex_body[i]]    # a sleeping body is held like a pinned one
 
     @ti.func
     def apply_H(self, i, u: ti.template(), cM, cK):
@@ -555,7 +569,9 @@ class ImplicitSolver:
             u = ti.Vector.zero(float, 3)
             if ti.static(self.has_ground):
                 self.contact[i] = 0
-                if self.model.free[i] > 0 and (x0[i][1] + dt * v0[i][1] < self.ground[None] or self.pressed[i]):
+                awake = self.awake[self.model.vertex_body[i]]
+                if awake and self.model.free[i] > 0 and (x0[i][1] + dt * v0[i][1] < self.ground[None]
+                                                         or self.pressed[i]):
                     self.contact[i] = 1
                     u[1] = (self.ground[None] - x0[i][1]) / dt
             self.velocity[i] = u
@@ -740,7 +756,7 @@ class ImplicitSolver:
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             b = self.model.vertex_body[i]
-            if self.body_pinned[b] == 0 and self.body_mass[b] > 0:
+            if self.body_pinned[b] == 0 and self.body_mass[b] > 0 and self.awake[b]:
                 u = ti.cast(self.body_momentum_vector[b] / self.body_mass[b], float)
                 v[i] += u
                 x[i] = x0[i] + dt * v[i]
@@ -791,6 +807,8 @@ class ImplicitSolver:
         """block_inverse <- inverse of the 3x3 diagonal blocks of H = cM M + cK K(R)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
+            if not self.awake[self.model.vertex_body[i]]:      # filtered to 0 while asleep
+                continue
             # a pinned vertex keeps an identity block, so the inverse exists even where mass is 0
             block = (cM * self.model.mass[i] + 1.0 - self.model.free[i]) * ti.Matrix.identity(float, 3)
             for j in range(self.model.adjacency_start[i], self.model.adjacency_start[i + 1]):
@@ -842,7 +860,8 @@ class ImplicitSolver:
             beta = self.cg_beta[None]
             ti.loop_config(serialize=self.serial_tets)
             for e in range(n_tets * on):
-                self.tet_stiffness(e, self.z, self.p, beta)
+                if self.tet_awake(e):
+                    self.tet_stiffness(e, self.z, self.p, beta)
             pAp = 0.0
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(n * on):
@@ -895,6 +914,21 @@ class ImplicitSolver:
                 bad += 1
         return bad
 
+    @ti.kernel
+    def body_speeds(self, v: ti.template()):
+        """body_speed[b] <- the largest |v_i|^2 over body b's vertices, (m/s)^2."""
+        for b in range(self.model.body_count[None]):
+            self.body_speed[b] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            ti.atomic_max(self.body_speed[self.model.vertex_body[i]], ti.cast(v[i].norm_sqr(), ti.f64))
+
+    @ti.kernel
+    def hold(self, v: ti.template(), start: ti.i32, stop: ti.i32):
+        """v <- 0 on vertices start..stop-1: a body put to sleep rests exactly."""
+        for i in range(start, stop):
+            v[i] = ti.Vector.zero(float, 3)
+
     def ground_reaction(self, cM, cK, newton):
         """pressed <- vertices in contact that the plane pushes up: the normal component of
         grad E is positive there (E would fall if they went down). After a Newton step rhs
@@ -908,6 +942,8 @@ class ImplicitSolver:
     def mark_pressed(self, cM: float, cK: float, newton: ti.template()):
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
+            if not self.awake[self.model.vertex_body[i]]:     # asleep: keeps its contacts for waking
+                continue
             self.pressed[i] = 0
             if self.contact[i]:
                 g = -self.rhs[i]
