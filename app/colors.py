@@ -41,7 +41,7 @@ class VertexColoring:
         self.mode = mode
         self.tets = sim.model.tets_np
         self.tets_per_vertex = np.bincount(self.tets.ravel(), minlength=sim.model.n_vertices)
-        self.body = body_colors(sim.model.vertex_body % (len(sim.model.bodies) // copies))
+        self.body = body_colors(sim.model.vertex_body_np % (len(sim.model.bodies) // copies))
         if mode == "volume":
             self.title, self.colormap = "volume ratio J = det F", "coolwarm"
             self.vmin, self.vmax = VOLUME_RANGE

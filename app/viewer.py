@@ -300,7 +300,7 @@ class Viewer:
     def push(self, hit, delta_v):
         """Push the hit body around the hit point; in compare mode its twin gets the same push."""
         model = self.sim.model
-        body = int(model.vertex_body[hit.vertex])
+        body = int(model.vertex_body_np[hit.vertex])
         span = model.bodies[body].vertices
         ids, dv = picking.push(self.x, np.arange(span.start, span.stop), hit.point, self.radius, delta_v)
         event = {"type": "click", "body": body, "hit_vertex": hit.vertex,

@@ -1,7 +1,7 @@
 """Scenes as data: what the builder needs to make a model.
 
 A `Scene` holds placed, validated input only (meshes, materials, effects,
-initial conditions, impulses, solver settings); `fem.builder.build_model` turns
+initial conditions, impulses, solver settings); `fem.builder.model_arrays` turns
 it into Taichi fields. `fem.scene_file` reads one from TOML, `fem.coursework`
 from the coursework's files; the schema is documented in `scenes/README.md`.
 """

@@ -244,7 +244,7 @@ class FakeSimulation:
         from types import SimpleNamespace
         from fem.scene import Material
         self.model = SimpleNamespace(tets_np=np.array([[0, 1, 2, 3], [1, 2, 3, 4]]), n_vertices=5,
-                                     vertex_body=np.zeros(5, int),
+                                     vertex_body_np=np.zeros(5, int),
                                      bodies=[SimpleNamespace(material=Material(1e4, 0.3, 1000.0))])
         self.energy = np.asarray(energy, float)
 
