@@ -204,6 +204,14 @@ def wait_for(condition, timeout, what):
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def frames_after_event(folder, kind):
+    """Complete stats rows streamed after the first event of `kind` (0 before it)."""
+    rows = [json.loads(line) for part in folder.glob(".s.jsonl.*.part")
+            for line in part.read_text().splitlines(keepends=True) if line.endswith("\n")]
+    frames = [row["frame"] for row in rows if any(e["type"] == kind for e in row["events"])]
+    return sum(row["frame"] > frames[0] for row in rows) if frames else 0
+
+
 # Two boxes at rest, no gravity: nothing moves until clicked.
 RESTING_BOXES = """
 name = "two resting boxes"
@@ -246,9 +254,9 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
         wait_for(lambda: any(p.stat().st_size > 0 for p in tmp_path.glob(".s.jsonl.*.part")),
                  60, "the first frames of the loaded scene")
         xdotool(env, "mousemove", "--window", wid, str(target[0]), str(target[1]), "click", "1")
-        time.sleep(2.0)
+        wait_for(lambda: frames_after_event(tmp_path, "click") >= 10, 60, "frames after the click")
         xdotool(env, "key", "--window", wid, "c")
-        time.sleep(2.0)
+        wait_for(lambda: frames_after_event(tmp_path, "methods") >= 10, 60, "frames after the toggle")
         subprocess.run(["import", "-window", "root", str(tmp_path / "shot.png")], env=env,
                        check=True, timeout=30)
         xdotool(env, "key", "--window", wid, "Escape")
