@@ -137,6 +137,7 @@ class Viewer:
             # A gap as wide as the scene, so that a linear copy growing as it turns stays clear of its twin.
             width = np.ptp(np.concatenate([b.mesh.vertices for b in scene.bodies])[:, 0])
             scene = scene.side_by_side(gap=max(0.5, float(width)))
+        self.sim = None       # the old scene's fields go back to the pool: a scene of the same kind compiles nothing
         sim = fem.Simulation(scene, method=None if args.compare else args.method, solver=args.solver,
                              dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters, step=args.step)
         warm_up(sim)

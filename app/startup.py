@@ -1,0 +1,66 @@
+"""What a user waits before the first step, measured (the benchmark's start-up rows).
+
+    cold    `main.py simulate SCENE --steps 1` in a new process, Taichi's offline cache empty
+    warm    the same again: the cache holds every kernel the first run compiled
+    second  in one process, a second Simulation of the scene made after the first one is
+            dropped, to the end of its first step (its kernels are compiled already, fem/pool.py)
+    beside  the same while the first one is still alive: it needs parts of its own
+
+Medians of `repeats` runs, wall seconds. The cold runs each use a new empty cache folder.
+"""
+
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def process_seconds(scene, cache):
+    """Wall time of `main.py simulate SCENE --steps 1` with Taichi's offline cache in `cache`."""
+    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(cache))
+    start = time.perf_counter()
+    subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", scene, "--steps", "1"],
+                   env=env, check=True, capture_output=True, timeout=600)
+    return time.perf_counter() - start
+
+
+def first_step_seconds(scene):
+    """Seconds from making a Simulation of `scene` (a Scene) to the end of its first step."""
+    import fem
+
+    start = time.perf_counter()
+    sim = fem.Simulation(scene)
+    sim.step()
+    return time.perf_counter() - start, sim
+
+
+def measure(scene_name, repeats=3, cold=True):
+    """{"cold_s", "warm_s", "second_s", "beside_s"}: medians over `repeats` (cold only if asked).
+    fem.init must have been called (second and beside run in this process)."""
+    import scenes
+
+    out = {}
+    with tempfile.TemporaryDirectory() as folder:
+        if cold:
+            out["cold_s"] = statistics.median(process_seconds(scene_name, Path(folder) / f"cold{k}")
+                                              for k in range(repeats))
+        warm = Path(folder) / "warm"
+        process_seconds(scene_name, warm)                  # fills the cache
+        out["warm_s"] = statistics.median(process_seconds(scene_name, warm) for _ in range(repeats))
+    scene = scenes.load_scene(scene_name)
+    first_step_seconds(scene)                              # compiles, then the Simulation is dropped
+    seconds = []
+    for _ in range(repeats):
+        elapsed, sim = first_step_seconds(scene)
+        seconds.append(elapsed)
+        del sim
+    out["second_s"] = statistics.median(seconds)
+    _, alive = first_step_seconds(scene)
+    out["beside_s"], _ = first_step_seconds(scene)
+    del alive
+    return out

@@ -1,0 +1,11 @@
+"""The start-up measurements of the benchmark run and say what they measured (never timed here)."""
+
+import fem
+from app import startup
+
+
+def test_startup_measures_warm_second_and_beside():
+    fem.init("cpu", "f32")
+    numbers = startup.measure("cube86", repeats=1, cold=False)
+    assert set(numbers) == {"warm_s", "second_s", "beside_s"}
+    assert all(value > 0 for value in numbers.values())
