@@ -25,6 +25,7 @@ def init(arch="cpu", precision="f32", debug=False):
         raise FemError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     # auto takes CUDA only: a Vulkan "GPU" may be Mesa's software driver, slower than the CPU backend.
     # gpu never probes OpenGL: on a machine without it, Taichi's probe ends the process (segfault).
+    brief_source_positions(not debug)
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
     # Taichi prints a banner on stdout; keep stdout for our own output
@@ -38,6 +39,22 @@ def init(arch="cpu", precision="f32", debug=False):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
     _current.update(arch=backend, precision=precision)
     return backend
+
+
+def brief_source_positions(on=True):
+    """Taichi formats a source excerpt with a caret line for every node of every kernel it
+    translates, in case that node fails to compile. It does so even when the offline cache
+    then supplies the compiled kernel, and the formatting is about half of a warm start.
+    On: only "File ..., line N, in kernel" is kept (the excerpt is shown with --debug)."""
+    from taichi.lang.ast.ast_transformer_utils import ASTTransformerContext as Context
+
+    if not hasattr(Context, "full_pos_info"):
+        Context.full_pos_info = Context.get_pos_info
+    Context.get_pos_info = _brief_pos_info if on else Context.full_pos_info
+
+
+def _brief_pos_info(context, node):
+    return f'File "{context.file}", line {node.lineno + context.lineno_offset}, in {context.func.func.__name__}:\n'
 
 
 def current():
