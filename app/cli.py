@@ -154,6 +154,9 @@ def build_parser(prog="main.py"):
     p.add_argument("--out", default="out/bench", help="output folder (default out/bench)")
     p.add_argument("--scenes", nargs="+", help="scenes to measure (default: all seed scenes and boxes)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
+    p.add_argument("--docs", action="store_true",
+                   help="replace docs/benchmark.md, docs/benchmark.json and docs/accuracy_vs_time.png "
+                        "instead of writing into --out (the full benchmark only)")
     add_common(p)
 
     sub.add_parser("scenes", help="list the built-in scenes")
