@@ -123,14 +123,16 @@ class Maker:
         self.histories = {}        # (scene, method, seconds) -> History
         self.compare_runs = {}     # scene -> CompareRun
 
-    def seconds(self, seconds):
-        return seconds * QUICK_FRACTION if self.quick else seconds
+    def steps(self, seconds, dt):
+        """Steps of dt (s) that make `seconds` of simulated time, a quarter of them when quick."""
+        return round(seconds * (QUICK_FRACTION if self.quick else 1) / dt)
 
     def history(self, name, method, seconds):
         key = (name, method, seconds)
         if key not in self.histories:
             scene = scenes.load_scene(name)
-            self.histories[key] = record(fem.Simulation(scene, method=method), self.seconds(seconds))
+            sim = fem.Simulation(scene, method=method)
+            self.histories[key] = record(sim, self.steps(seconds, scene.solver.dt))
         return self.histories[key]
 
     def compare_run(self, ref):
@@ -152,10 +154,10 @@ class History:
     positions: list = field(default_factory=list)
 
 
-def record(sim, seconds) -> History:
-    """Step sim for `seconds` of simulated time at its dt, sampling before and after every step."""
+def record(sim, steps) -> History:
+    """Step sim `steps` times, sampling before the first step and after every step."""
     history = History()
-    for k in range(round(seconds / sim.settings.dt) + 1):
+    for k in range(steps + 1):
         if k:
             sim.step()
         stats = sim.stats()
@@ -171,7 +173,7 @@ class CompareRun:
     --compare` shows it), pictured with both colourings as it runs forward."""
 
     def __init__(self, scene):
-        self.scene = scene
+        self.scene, self.dt, self.steps = scene, scene.solver.dt, 0
         self.sim = fem.Simulation(scene.side_by_side())
         self.views = {color: View(self.sim, scene, True, color, "software", *STILL_SIZE)
                       for color in ("body", "volume")}
@@ -179,10 +181,11 @@ class CompareRun:
     def pictures(self, steps, extra_lines=()):
         """{colour: picture (H, W, 3) uint8} after `steps` steps, and the numbers they show.
         Every view draws every time, so that both cameras back off alike."""
-        if steps < self.sim.steps:
-            raise ValueError(f"{self.scene.name}: already {self.sim.steps} steps, cannot show step {steps}")
-        while self.sim.steps < steps:
+        if steps < self.steps:
+            raise ValueError(f"{self.scene.name}: already {self.steps} steps, cannot show step {steps}")
+        for _ in range(steps - self.steps):
             self.sim.step()
+        self.steps = steps
         ratios = self.sim.stats()["volume_ratio"]
         names = [body.name for body in self.scene.bodies]
         volumes = {"linear": dict(zip(names, ratios[:len(names)])),
@@ -191,7 +194,7 @@ class CompareRun:
             f"{method} " + ", ".join(f"{v:.2f}" for v in by_body.values()) for method, by_body in volumes.items())]
         pictures = {color: view.annotated(view.picture(self.sim), view.caption + lines)
                     for color, view in self.views.items()}
-        numbers = {"scene": self.scene.name, "steps": self.sim.steps, "dt": self.sim.settings.dt, "t": self.sim.t,
+        numbers = {"scene": self.scene.name, "steps": steps, "dt": self.dt, "t": self.sim.t,
                    "volume_ratio": volumes}
         return pictures, numbers
 
@@ -274,8 +277,7 @@ def frame_grid(maker, refs, source):
     rows, numbers = [], []
     for ref in refs:
         run = maker.compare_run(ref)
-        dt = run.sim.settings.dt
-        lines = [f"frame {FRAME}: {FRAME} steps of {dt:g} s", f"{source} {Path(ref).name}"]
+        lines = [f"frame {FRAME}: {FRAME} steps of {run.dt:g} s", f"{source} {Path(ref).name}"]
         pictures, shown = run.pictures(FRAME, lines)
         rows.append(pictures["volume"])
         numbers.append({"source": str(ref), **shown})
@@ -286,7 +288,7 @@ def frame_grid(maker, refs, source):
 
 def epcot_still(maker, color):
     run = maker.compare_run("epcot")
-    pictures, numbers = run.pictures(round(STILL_TIME_S / run.sim.settings.dt))
+    pictures, numbers = run.pictures(round(STILL_TIME_S / run.dt))
     return Drawn(image_saver(pictures[color]), numbers)
 
 
@@ -306,7 +308,8 @@ def hard_case_energy(maker):
     cases = hard_cases()
     case = replace(next(c for c in cases.HARD_CASES if c.name == HARD_CASE), dt=HARD_CASE_DT)
     scene, _ = cases.build_scene([case], ["corotational"])
-    runs = {step: record(fem.Simulation(scene, step=step), maker.seconds(HARD_CASE_S)) for step in STEP_KINDS}
+    steps = maker.steps(HARD_CASE_S, HARD_CASE_DT)
+    runs = {step: record(fem.Simulation(scene, step=step), steps) for step in STEP_KINDS}
     fig, ax = new_plot()
     rises = {}
     for (step, label), colour in zip(STEP_KINDS.items(), ("C3", "C0")):

@@ -62,20 +62,23 @@ def torsion(tmp_path_factory):
     """`figures --only volume_torsion torsion_length` as committed, and the runs it drew from:
     (folder, {method: (scene, positions at every sample)})."""
     out = tmp_path_factory.mktemp("figures")
-    runs, record = {}, figures.record
+    makers = []
 
-    def keep(sim, seconds):
-        history = record(sim, seconds)
-        runs[sim.scene.bodies[0].method] = (sim.scene, history.positions)
-        return history
+    class Kept(figures.Maker):      # keeps the runs the command made
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            makers.append(self)
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(figures, "record", keep)
+        patch.setattr(figures, "Maker", Kept)
         code, out_text, err = run("figures", "--out", str(out), "--only", "volume_torsion", "torsion_length")
     assert code == 0, err
     assert "[1/2] volume_torsion" in err and "[2/2] torsion_length" in err
     assert "wrote 2 figures" in out_text
-    return out, runs
+    (maker,) = makers
+    scene = load_scene("torsion")
+    return out, {method: (scene, maker.history("torsion", method, figures.DURATION_S).positions)
+                 for method in ("linear", "corotational")}
 
 
 def test_each_figure_is_a_png_and_its_numbers(torsion):
