@@ -52,7 +52,7 @@ Redraw every figure in docs/ from the engine; each figure NAME is NAME.png and N
 
   volume_SCENE          volume / rest volume over time, linear vs corotational, for each
                         built-in scene (volume_bunny, volume_cube, ... volume_torsion)
-  torsion_length        the torsion bar's length along its axis over time
+  torsion_length        the torsion bar's length along its axis, and its thickness, over time
   frame25_builtin       epcot and cube86 at frame 25, linear vs corotational (coursework Figure 1)
   frame25_coursework    the same from the coursework's own *-scene.txt files (needs --cggs)
   epcot_compare         epcot at t = 2 s, linear left, corotational right (the README's picture)
@@ -181,8 +181,9 @@ def build_parser(prog="main.py"):
 
     p = sub.add_parser("figures", help="redraw every figure in docs/, with the numbers behind each",
                        description=FIGURES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default="out/figures", help="folder for NAME.png and NAME.json "
-                                                        "(default out/figures; `--out docs` to update the docs)")
+    p.add_argument("--out", default="out/figures", metavar="DIR",
+                   help="folder for NAME.png and NAME.json (default out/figures; "
+                        "`--out docs --overwrite` updates the committed figures)")
     p.add_argument("--only", nargs="+", metavar="NAME", help="make only these figures (names above)")
     p.add_argument("--cggs", metavar="FOLDER", help="the coursework's folder of *-scene.txt and .mesh files: "
                                                     "also draw frame25_coursework")

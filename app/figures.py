@@ -11,7 +11,8 @@ compared with a committed one number by number.
 
     volume_SCENE          volume / rest volume of each body over time, linear vs corotational,
                           for every built-in scene
-    torsion_length        the torsion bar's length along its axis over time, linear vs corotational
+    torsion_length        the torsion bar's length along its axis and its largest distance from
+                          the axis over time, linear vs corotational
     frame25_builtin       epcot and cube86 after 25 steps, linear vs corotational side by side,
                           coloured by volume ratio (like the coursework report's Figure 1)
     frame25_coursework    the same from the coursework's epcot- and cube86-scene.txt (--cggs)
@@ -92,7 +93,8 @@ def catalogue():
                       lambda maker, name=name: volume_plot(maker, name))
                for name in scenes.builtin_scenes()]
     return figures + [
-        Figure("torsion_length", "torsion: the bar's length over time, linear vs corotational", torsion_length),
+        Figure("torsion_length", "torsion: the bar's length and thickness over time, linear vs corotational",
+               torsion_length),
         Figure("frame25_builtin", f"epcot and cube86 at frame {FRAME}, built-in scenes",
                lambda maker: frame_grid(maker, ["epcot", "cube86"], "built-in scene")),
         Figure("frame25_coursework", f"epcot and cube86 at frame {FRAME}, the coursework's scene files",
