@@ -27,7 +27,9 @@ affordable.
 A variant's cost is the wall time of a step, measured after warm-up (Taichi compiles
 its kernels on first use), and the wall time per simulated second (ms per step / dt),
 which compares runs at different dt.
-Outputs: results.md (tables), results.json (every number), accuracy_vs_time.png.
+Outputs: results.md (tables), results.json (every number), accuracy_vs_time.png; with --docs,
+the pages in docs/ instead: benchmark.md, benchmark.json (from which `main.py figures` redraws
+the plot) and accuracy_vs_time.png.
 """
 
 import datetime
@@ -48,9 +50,10 @@ import taichi as ti
 import fem
 import scenes
 from app import device, direct
-from app.files import atomic_open, refuse_overwrite
+from app.files import atomic_open, check_output, refuse_overwrite
 from app.progress import Progress
 from assets.generators import box
+from fem.errors import FemError
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
 
 DT_FACTORS = (2, 1, 0.5, 0.25)   # the dt axis, times the scene's dt (0.04 to 0.005 s for the seed scenes)
@@ -66,6 +69,10 @@ ERROR_GOAL = 1e-2                # accurate enough: RMS position error under 1 %
                                  # 0.1 % lies below the reference's floor on the spinning bars)
 MIN_TIMED_STEPS = 3              # a variant stopped by the time budget still times this many steps
 BOXES = {"box80": 2, "box1k": 5, "box10k": 10, "box50k": 17}   # 2 x 1 x 1 m bar, 2k x k x k cells
+# What `write` names its files: in --out, and as the committed pages in docs/ (`bench --docs`).
+RESULT_FILES = {"json": "results.json", "md": "results.md", "plot": "accuracy_vs_time.png"}
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+DOCS_FILES = {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_vs_time.png"}
 
 
 @dataclass
@@ -634,21 +641,33 @@ def plot(results, file):
     plt.close(fig)
 
 
-def write(results, out):
+def write(results, out, names=RESULT_FILES):
     out = Path(out)
-    with atomic_open(out / "results.json") as f:
+    with atomic_open(out / names["json"]) as f:
         json.dump(results, f, indent=1)
-    with atomic_open(out / "results.md") as f:
+    with atomic_open(out / names["md"]) as f:
         f.write(markdown(results))
-    with atomic_open(out / "accuracy_vs_time.png", "wb") as f:
+    with atomic_open(out / names["plot"], "wb") as f:
         plot(results, f)
 
 
 # ---------------------------------------------------------------- command
 
+def destination(args):
+    """(folder, file names) the results go to: --out, or with --docs the pages in docs/, which
+    it replaces (they are under version control) and which only the full plan may write."""
+    if not args.docs:
+        refuse_overwrite(args.out, args.overwrite)
+        return Path(args.out), RESULT_FILES
+    if args.quick or args.scenes:
+        raise FemError(f"--docs records the full benchmark; drop {'--quick' if args.quick else '--scenes'}")
+    check_output(DOCS, "--docs", "folder")
+    return DOCS, DOCS_FILES
+
+
 def run(args, plan=None):
     """main.py bench; `plan` (for tests) replaces the quick or full plan."""
-    refuse_overwrite(args.out, args.overwrite)
+    folder, names = destination(args)
     backend = device.start(args)["backend"]
     plan = plan or (QUICK if args.quick else full_plan())
     if args.scenes:
@@ -664,8 +683,7 @@ def run(args, plan=None):
     info["bench_minutes"] = (time.perf_counter() - began) / 60
     results = {"machine": info, "plan": vars(plan), "headline": lines, "headline_numbers": numbers,
                "scenes": scenes}
-    write(results, args.out)
+    write(results, folder, names)
     print("\n".join(lines))
-    print(f"wrote {Path(args.out) / 'results.md'}, results.json, accuracy_vs_time.png "
-          f"({info['bench_minutes']:.1f} min)")
+    print(f"wrote {folder / names['md']}, {names['json']}, {names['plot']} ({info['bench_minutes']:.1f} min)")
     return 0

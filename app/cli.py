@@ -7,6 +7,7 @@
     python main.py export epcot --compare --frames 150 --out out/epcot-compare --video out/epcot-compare.mp4
     python main.py view bunny
     python main.py bench --quick
+    python main.py figures --out out/figures
     python main.py scenes
 
 Bad input ends with one line `error: ...` on stderr and exit code 2, before any
@@ -33,6 +34,7 @@ OUTPUTS = {
     "export": [("out", "--out", "folder"), ("video", "--video", "file")],
     "view": [("stats", "--stats", "file"), ("out", "--out", "folder")],
     "bench": [("out", "--out", "folder")],
+    "figures": [("out", "--out", "folder")],
 }
 EPILOG = """\
 examples:
@@ -43,6 +45,24 @@ examples:
 
 SCENE is a built-in name (see `scenes`), a .toml scene file, a coursework *-scene.txt,
 or a mesh file. Exit codes: 0 done, 1 every step rejected, 2 bad input, 130 interrupted."""
+
+FIGURES_HELP = """\
+Redraw every figure in docs/ from the engine; each figure NAME is NAME.png and NAME.json
+(the numbers drawn in it), so a new run can be compared with a committed one.
+
+  volume_SCENE          volume / rest volume over time, linear vs corotational, for each
+                        built-in scene (volume_bunny, volume_cube, ... volume_torsion)
+  torsion_length        the torsion bar's length along its axis, and its thickness, over time
+  frame25_builtin       epcot and cube86 at frame 25, linear vs corotational (coursework Figure 1)
+  frame25_coursework    the same from the coursework's own *-scene.txt files (needs --cggs)
+  epcot_compare         epcot at t = 2 s, linear left, corotational right (the README's picture)
+  epcot_compare_volume  the same, coloured by volume ratio
+  accuracy_vs_time      the benchmark's plot, redrawn from docs/benchmark.json (`bench --docs`)
+  hard_case_energy      a near-incompressible cube at dt 0.5 s: the one-solve step gains energy,
+                        the Newton step never does
+
+All of them take a few minutes on 2 CPU cores. docs/viewer.png is not made here: it is a
+screenshot of the window (`view epcot --compare`, then the p key)."""
 
 
 class Parser(argparse.ArgumentParser):
@@ -157,6 +177,24 @@ def build_parser(prog="main.py"):
     p.add_argument("--out", default="out/bench", help="output folder (default out/bench)")
     p.add_argument("--scenes", nargs="+", help="scenes to measure (default: all seed scenes and boxes)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
+    p.add_argument("--docs", action="store_true",
+                   help="replace docs/benchmark.md, docs/benchmark.json and docs/accuracy_vs_time.png "
+                        "instead of writing into --out (the full benchmark only)")
+    add_common(p)
+
+    p = sub.add_parser("figures", help="redraw every figure in docs/, with the numbers behind each",
+                       description=FIGURES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="out/figures", metavar="DIR",
+                   help="folder for NAME.png and NAME.json (default out/figures; "
+                        "`--out docs --overwrite` updates the committed figures)")
+    p.add_argument("--only", nargs="+", metavar="NAME", help="make only these figures (names above)")
+    p.add_argument("--cggs", metavar="FOLDER", help="the coursework's folder of *-scene.txt and .mesh files: "
+                                                    "also draw frame25_coursework")
+    p.add_argument("--bench", metavar="FILE.json", help="the benchmark results to redraw "
+                                                        "(default docs/benchmark.json, from `bench --docs`)")
+    p.add_argument("--quick", action="store_true", help="a quarter of the simulated time, to try the "
+                                                        "command (not for docs/)")
+    p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
     add_common(p)
 
     sub.add_parser("scenes", help="list the built-in scenes")
@@ -240,6 +278,9 @@ def dispatch(args, parser):
     if args.command == "bench":
         from app import bench
         return bench.run(args)
+    if args.command == "figures":
+        from app import figures
+        return figures.run(args)
     raise AssertionError(args.command)
 
 

@@ -156,6 +156,8 @@ class Scene:
                    for b in self.bodies]
 
         def copies(sel):
+            if sel.body is None and sel.sphere is None and sel.box is None:
+                return [sel]     # every body already, both copies: once each
             right = replace(sel, body=None if sel.body is None else sel.body + k,
                             sphere=None if sel.sphere is None else (sel.sphere[0] + shift, sel.sphere[1]),
                             box=None if sel.box is None else (sel.box[0] + shift, sel.box[1] + shift))

@@ -173,3 +173,15 @@ def test_an_f32_bench_takes_its_reference_in_f64_and_comes_back(bench_output, tm
     assert reference["0.08"].dtype == np.float64
     _, rows64 = rows_of(bench_output)
     assert rows[1]["errors"]["0.08"] == pytest.approx(rows64[1]["errors"]["0.08"], rel=1e-9)
+
+
+def test_docs_writes_the_committed_pages_from_the_full_plan_only(tmp_path, monkeypatch):
+    """`bench --docs` replaces docs/benchmark.md, benchmark.json and the plot, whatever --out says."""
+    monkeypatch.setattr(bench, "DOCS", tmp_path)
+    (tmp_path / "benchmark.md").write_text("the last run")
+    args = main.build_parser().parse_args(["bench", "--docs"])
+    assert bench.destination(args) == (tmp_path, bench.DOCS_FILES)
+    assert bench.DOCS_FILES == {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_vs_time.png"}
+    for extra in (["--quick"], ["--scenes", "cube86"]):
+        with pytest.raises(fem.FemError, match="--docs records the full benchmark"):
+            bench.destination(main.build_parser().parse_args(["bench", "--docs", *extra]))

@@ -4,9 +4,9 @@ The commands are read from README.md, scenes/README.md and docs/experiments.md: 
 of `bash` blocks and the inline `python main.py ...` spans (not the syntax lines, whose words in capitals, such
 as SCENE or FILE.jsonl, stand for what a user fills in). Each runs in one shared, initially
 empty folder through `main.main` in this process, with fewer frames and steps and smaller
-pictures than shown. A user's own files the text names (my_shape.obj, fertility.mesh) are
-made up first. Commands that cannot run here are listed in SKIPPED with the reason, so a
-new command in a README fails this test until it runs or is listed.
+pictures than shown, and shorter figures. A user's own files the text names (my_shape.obj,
+fertility.mesh) are made up first. Commands that cannot run here are listed in SKIPPED with
+the reason, so a new command in a README fails this test until it runs or is listed.
 """
 
 import contextlib
@@ -38,6 +38,9 @@ SKIPPED = {
     "bench": "takes minutes; tests/test_bench.py runs it on one small scene",
 }
 FRAMES, STEPS, SIZE = "2", "3", "160x128"
+# `figures` runs --quick, and only these when the command asks for all of them (minutes);
+# tests/test_figures.py checks the figures and their numbers.
+FIGURES = ["torsion_length"]
 PLACEHOLDER = re.compile(r"^\[|\]$|\||^[A-Z]+([._=][A-Za-z0-9.]+)?$")
 
 
@@ -86,6 +89,8 @@ def smaller(argv):
             argv[argv.index(option) + 1] = value
         else:
             argv += [option, value]
+    if argv[:1] == ["figures"]:
+        argv += ["--quick"] + ([] if "--only" in argv else ["--only", *FIGURES])
     return argv
 
 

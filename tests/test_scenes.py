@@ -87,3 +87,20 @@ def test_set_overrides_a_scene_value():
     assert scene.solver.dt == 0.005
     assert [b.material.E for b in scene.bodies] == [1234.0, 1234.0]
     assert len(scene.bodies[0].mesh.tets) == 40 and len(scene.bodies[1].mesh.tets) == 135
+
+
+@pytest.mark.parametrize("name", ["epcot", "cube86", "torsion"])
+def test_side_by_side_starts_each_copy_as_the_scene_starts(f64, name):
+    """Each copy of `export --compare` gets the scene's initial conditions once: the left copy
+    starts where the scene alone starts, the right copy the same, moved along x."""
+    scene = scenes.load_scene(name)
+    solo, pair = fem.Simulation(scene), fem.Simulation(scene.side_by_side())
+    n = len(solo.positions())
+    x, v = pair.positions(), pair.velocities()
+    np.testing.assert_allclose(x[:n], solo.positions(), atol=1e-12)
+    np.testing.assert_allclose(v[:n], solo.velocities(), atol=1e-12)
+    np.testing.assert_allclose(v[n:], solo.velocities(), atol=1e-12)
+    shift = x[n:] - x[:n]
+    np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-12)
+    assert shift[0, 0] > 0
+    np.testing.assert_allclose(shift[0, 1:], 0.0, atol=1e-12)
