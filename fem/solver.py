@@ -16,7 +16,7 @@ by Jacobi-preconditioned CG (or weighted Jacobi iteration), never assembling H: 
 stiffness product runs tet by tet and per-vertex sums gather over the model's adjacency
 (no atomics, so every run is the same bit for bit). A backtracking line search on E
 (Armijo) accepts only iterates that lower E, with E summed in float64 whatever the
-fields' precision. The first Newton iteration from v = 0 is the classical one-solve
+fields' precision. The first Newton iteration from v = v_n is the classical one-solve
 (stiffness-warping) step: `step = "single"` stops there, without line search.
 
 Convergence is tested per body: body b has converged when |grad_b E| <= tol * s_b, with
@@ -219,9 +219,11 @@ class ImplicitSolver:
         rotation_ms = self.update_rotations(self.x, corotational)    # R(x_n)
         if newton:
             self.body_energy(self.x, self.v, self.energy_before, self.energy_size_before)     # x, v = x_n, v_n still
-        self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
         if self.has_stiffness_damping:
             self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
+        self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
+        if newton:
+            rotation_ms += self.update_rotations(self.x, True)   # R at the first iterate x_n + dt v_n
         if corotational or self.preconditioner_key != (cM, cK):
             self.build_preconditioner(cM, cK)                 # linear: built once, as H never changes
             self.preconditioner_key = None if corotational else (cM, cK)
@@ -234,7 +236,7 @@ class ImplicitSolver:
         settled = False
         while rho > 1.0 and newton_iters < (settings.max_newton if newton else 1):
             target = 1.0 if not newton else max(1.0, FORCING ** 2 * rho)
-            solver_iters += self.solve(self.v0, cM, cK, target, warm=newton_iters == 0)
+            solver_iters += self.solve(cM, cK, target)
             newton_iters += 1
             if not newton:
                 rho = float(self.rr[None])                    # the linear solve's own residual
@@ -274,9 +276,9 @@ class ImplicitSolver:
         if bad == 0 and self.has_ground:
             self.ground_contact(self.x, self.v)
         limited = 0
+        if bad == 0 and not self.has_ground:
+            self.restore_momentum(self.v0, self.x0, self.x, self.v, dt)
         if bad == 0 and newton:
-            if not self.has_ground:
-                self.restore_momentum(self.v0, self.x0, self.x, self.v, dt)
             self.body_energy(self.x, self.v, self.energy_after, self.energy_size_after)
             limited = self.limit_energy(self.x0, self.x, self.v)
         self.copy_state(self.x, self.v, state_out.x, state_out.v)
@@ -314,9 +316,9 @@ class ImplicitSolver:
         ti.sync()
         return 1e3 * (time.perf_counter() - start)
 
-    def solve(self, v0, cM, cK, target, warm):
+    def solve(self, cM, cK, target):
         """H d = -grad E until the weighted residual sum_b |r_b|^2 w_b <= target; returns iterations."""
-        self.start_direction(v0, warm)
+        self.start_direction()
         if self.settings.method == "pcg":
             self.stiffness_product(self.solution)
             if self.start_residual(cM, cK) > target:
@@ -562,11 +564,12 @@ class ImplicitSolver:
     @ti.kernel
     def start_iterate(self, x0: ti.template(), v0: ti.template(), x: ti.template(), v: ti.template(),
                       dt: float):
-        """The first Newton iterate: v = 0, except the normal velocity of vertices on the ground,
-        prescribed so that they land on the plane (the ground's active set is chosen here)."""
+        """The first Newton iterate: v = v_n (a body whose step changes nothing measurable keeps
+        its velocity), except the normal velocity of vertices on the ground, prescribed so that
+        they land on the plane (the ground's active set is chosen here)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            u = ti.Vector.zero(float, 3)
+            u = v0[i]
             if ti.static(self.has_ground):
                 self.contact[i] = 0
                 awake = self.awake[self.model.vertex_body[i]]
@@ -793,14 +796,11 @@ class ImplicitSolver:
             self.velocity[i] = v[i]
 
     @ti.kernel
-    def start_direction(self, v0: ti.template(), warm: ti.template()):
-        """d <- filtered v_n - v (first Newton iteration: today's velocity is a good guess) or 0."""
+    def start_direction(self):
+        """d <- 0: the iterate itself is the guess (the first one is v_n)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            d = ti.Vector.zero(float, 3)
-            if ti.static(warm):
-                d = self.filtered(i, v0[i] - self.velocity[i])
-            self.solution[i] = d
+            self.solution[i] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def build_preconditioner(self, cM: float, cK: float):
