@@ -10,9 +10,21 @@ but K(R) = sum_e R Ke R^T is assembled as a sparse matrix from the textbook
 changes), every step for corotational FEM (the rotations do). Rotations come
 from a numpy SVD, so this module shares no code with the engine's solver and
 the two can check each other. It always runs in float64.
+
+A's sparsity pattern is the mesh's and never changes: the rotations change its values, and a
+pinned or grounded dof clears its row and column but keeps them. So a solver that can split
+its work analyses the pattern (fill-reducing ordering, symbolic factor) once and only
+refactorises the values each step, as a user who knows their solver would. `BACKENDS`,
+fastest first:
+
+    pardiso   MKL PARDISO (pypardiso, `pip install softfem[fast-direct]`): Cholesky, analysis once
+    cholmod   CHOLMOD (scikit-sparse, if installed): Cholesky, analysis once
+    superlu   scipy's SuperLU, always there: LU, ordered and analysed again every step
+              (the coursework's way)
 """
 
 import time
+import weakref
 
 import numpy as np
 import scipy.sparse as sp
@@ -21,11 +33,92 @@ import scipy.sparse.linalg as spla
 from fem.builder import initial_state
 
 try:
-    from sksparse.cholmod import cholesky
+    import pypardiso
+except ImportError:   # an optional extra; also raised when pypardiso cannot find MKL
+    pypardiso = None
+try:
+    from sksparse import cholmod
 except ImportError:
-    cholesky = None
+    cholmod = None
 
-FACTORISATION = "CHOLMOD (scikit-sparse)" if cholesky else "SuperLU (scipy)"
+BYTES_PER_ENTRY = 12   # a factor entry: float64 value + int32 index
+
+
+class Pardiso:
+    """MKL PARDISO through pypardiso, for a symmetric positive definite A (matrix type 2).
+
+    PARDISO reads only the upper triangle of a symmetric matrix. pypardiso's own `solve`
+    would analyse again whenever A's values change, so the three phases are called one by one:
+    11 (analysis) here, 22 (numeric factorisation) per `factorise`, 33 (solve) per `solve`.
+    """
+
+    label = "MKL PARDISO (pypardiso)"
+    SPD = 2
+
+    def __init__(self, A):
+        rows = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
+        self.upper = np.flatnonzero(A.indices >= rows)     # A's entries that PARDISO reads
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[self.upper], minlength=A.shape[0]))])
+        self.U = sp.csr_matrix((A.data[self.upper], A.indices[self.upper], indptr), shape=A.shape)
+        self.pardiso = pypardiso.PyPardisoSolver(mtype=self.SPD)
+        weakref.finalize(self, self.pardiso.free_memory, True)   # MKL's memory is not Python's
+        self.run(11)
+        # after the analysis: iparm(16) + iparm(17) = the memory the factorisation keeps and uses, in KiB
+        self.factor_bytes = 1024 * int(self.pardiso.get_iparm(16) + self.pardiso.get_iparm(17))
+
+    def run(self, phase, b=None):
+        self.pardiso.set_phase(phase)
+        return self.pardiso._call_pardiso(self.U, np.zeros(self.U.shape[0]) if b is None else b)
+
+    def factorise(self, A):
+        np.take(A.data, self.upper, out=self.U.data)
+        self.run(22)
+
+    def solve(self, b):
+        return self.run(33, b)
+
+
+class Cholmod:
+    """CHOLMOD through scikit-sparse: the ordering and symbolic factor once, a numeric Cholesky per `factorise`."""
+
+    label = "CHOLMOD (scikit-sparse)"
+
+    def __init__(self, A):
+        self.factor = cholmod.analyze(A.T)            # A is symmetric: A.T is A in CSC, without a copy
+        self.factor_bytes = 0                         # known once factorised
+
+    def factorise(self, A):
+        self.factor.cholesky_inplace(A.T)
+        if not self.factor_bytes:
+            self.factor_bytes = BYTES_PER_ENTRY * self.factor.L().nnz
+
+    def solve(self, b):
+        return self.factor(b)
+
+
+class SuperLU:
+    """scipy's SuperLU: orders, analyses and factorises from scratch in every `factorise`."""
+
+    label = "SuperLU (scipy)"
+
+    def __init__(self, A):
+        self.factor_bytes = 0
+
+    def factorise(self, A):
+        self.lu = spla.splu(A.T, permc_spec="MMD_AT_PLUS_A")
+        self.factor_bytes = BYTES_PER_ENTRY * (self.lu.L.nnz + self.lu.U.nnz)
+
+    def solve(self, b):
+        return self.lu.solve(b)
+
+
+BACKENDS = {"pardiso": Pardiso, "cholmod": Cholmod, "superlu": SuperLU}   # fastest first
+INSTALLED = {"pardiso": pypardiso is not None, "cholmod": cholmod is not None, "superlu": True}
+
+
+def fastest_available():
+    """The name of the fastest backend installed here."""
+    return next(name for name in BACKENDS if INSTALLED[name])
 
 
 def shape_gradients(X, tets):
@@ -63,23 +156,15 @@ def polar_rotations(F):
     return U @ Vt
 
 
-def factorise(A):
-    """(solve, bytes): a solver for the sparse SPD matrix A and the memory its factor holds."""
-    if cholesky is not None:
-        factor = cholesky(A.tocsc())
-        return factor, 12 * factor.L().nnz
-    lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
-    return lu.solve, 12 * (lu.L.nnz + lu.U.nnz)   # float64 value + int32 index per entry
-
-
 class DirectSolver:
     """Steps a `fem.Simulation`'s scene with an assembled, factorised matrix.
 
     The coursework's step: one linear solve with the rotations frozen, what the engine does
     with `step = "single"`. Reads the engine's model and scene only; its own state is x, v (n, 3) float64 numpy arrays.
+    `backend`: a name in `BACKENDS`, by default the fastest installed.
     """
 
-    def __init__(self, sim):
+    def __init__(self, sim, backend=None):
         model, effects = sim.model, sim.scene.effects
         self.dt = sim.settings.dt
         self.cM, self.cK = sim.coefficients
@@ -103,9 +188,13 @@ class DirectSolver:
         self.build_pattern(n)
         self.x, self.v = initial_state(sim.scene, model)
         self.t = 0.0
-        self.A, self.fixed = None, None     # the last matrix, and the dofs fixed when it was factorised
         self.pressed = np.zeros(n, bool)    # vertices the ground pushed up last step
-        self.memory_bytes = 0               # of A and its factor
+        self.A = self.system_matrix(self.rotations())
+        self.fixed = None                   # the dofs fixed when A was last factorised
+        self.backend_name = backend or fastest_available()
+        start = time.perf_counter()
+        self.backend = BACKENDS[self.backend_name](self.A)   # analyses A's pattern, where it can
+        self.analysis_ms = 1e3 * (time.perf_counter() - start)
 
     def build_pattern(self, n):
         """The sparsity of K, once: where each of the m x 144 element entries lands in a CSR matrix."""
@@ -116,7 +205,8 @@ class DirectSolver:
         keys, self.slot = np.unique(rows.astype(np.int64) * size + cols, return_inverse=True)
         self.indices = (keys % size).astype(np.int32)
         self.indptr = np.searchsorted(keys // size, np.arange(size + 1)).astype(np.int32)
-        self.diagonal = np.flatnonzero(keys // size == keys % size)   # one slot per dof, in dof order
+        self.rows = (keys // size).astype(np.int32)
+        self.diagonal = np.flatnonzero(self.rows == self.indices)   # one slot per dof, in dof order
         self.size = size
 
     def rotations(self):
@@ -157,14 +247,24 @@ class DirectSolver:
             v_fixed[normal] = (self.effects.ground - self.x[contact, 1]) / self.dt
         return fixed, v_fixed
 
-    def factorise(self, A, fixed):
-        """Factorise the free block of A; keep the block that couples free to fixed dofs."""
-        rows = A[~fixed]
-        A_free = rows[:, ~fixed]
-        self.solve, factor_bytes = factorise(A_free)
-        self.coupling = rows[:, fixed]
-        self.fixed = fixed
-        self.memory_bytes = A.data.nbytes + A.indices.nbytes + A.indptr.nbytes + factor_bytes
+    def constrained(self, fixed):
+        """A with the rows and columns of fixed dofs cleared but for their diagonal: the same pattern."""
+        data = self.A.data.copy()
+        data[(fixed[self.rows] | fixed[self.indices]) & (self.rows != self.indices)] = 0
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.A.shape)
+
+    def constrained_rhs(self, b, fixed, v_fixed):
+        """The right-hand side for the constrained A: the fixed dofs' coupling moves into it, and
+        their rows read A_ii v_i = A_ii v_fixed_i."""
+        rhs = b - self.A @ v_fixed
+        rhs[fixed] = self.A.data[self.diagonal][fixed] * v_fixed[fixed]
+        return rhs
+
+    @property
+    def memory_bytes(self):
+        """Bytes held by A and its factor."""
+        A = self.A
+        return A.data.nbytes + A.indices.nbytes + A.indptr.nbytes + self.backend.factor_bytes
 
     def elastic_forces(self, R):
         """(n, 3) f = sum over tets of -R Ke (R^T x_e - X_e), N."""
@@ -177,7 +277,7 @@ class DirectSolver:
         return f
 
     def step(self):
-        """One backward Euler step; returns wall_ms, rotation_ms, factorise_ms, solve_ms."""
+        """One backward Euler step; returns wall_ms, rotation_ms, assembly_ms, factorise_ms, solve_ms."""
         start = time.perf_counter()
         while self.impulses and self.impulses[0][0] <= self.t + 0.5 * self.dt:
             _, ids, dv = self.impulses.pop(0)
@@ -187,17 +287,18 @@ class DirectSolver:
         contact = self.contacts()
         fixed, v_fixed = self.constraints(contact)
         corotational = self.corotational.any()
-        if corotational or self.A is None:
+        if corotational:
             self.A = self.system_matrix(R)
+        assembled = time.perf_counter()
         if corotational or self.fixed is None or not np.array_equal(fixed, self.fixed):
-            self.factorise(self.A, fixed)   # linear: once, unless the contacts change
+            self.backend.factorise(self.constrained(fixed))   # linear: once, unless the contacts change
+            self.fixed = fixed
         factorised = time.perf_counter()
         f = self.elastic_forces(R)
         if self.effects.gravity is not None:
             f += self.mass[:, None] * np.asarray(self.effects.gravity)
         b = (self.mass[:, None] * self.v + self.dt * f).ravel()
-        v_new = v_fixed
-        v_new[~fixed] = self.solve(b[~fixed] - self.coupling @ v_fixed[fixed])
+        v_new = self.backend.solve(self.constrained_rhs(b, fixed, v_fixed))
         if self.effects.ground is not None:   # the plane pushes where (A v - b)_y > 0; elsewhere it may let go
             self.pressed = contact & ((self.A @ v_new - b)[1::3] > 0)
         self.v = v_new.reshape(-1, 3)
@@ -207,7 +308,8 @@ class DirectSolver:
         self.t += self.dt
         end = time.perf_counter()
         return {"wall_ms": 1e3 * (end - start), "rotation_ms": 1e3 * (rotated - start),
-                "factorise_ms": 1e3 * (factorised - rotated), "solve_ms": 1e3 * (end - factorised)}
+                "assembly_ms": 1e3 * (assembled - rotated), "factorise_ms": 1e3 * (factorised - assembled),
+                "solve_ms": 1e3 * (end - factorised)}
 
     def ground_contact(self, contact):
         """As the engine: friction on the vertices in contact, and none left below the plane."""
