@@ -63,8 +63,7 @@ class Pardiso:
         self.pardiso = pypardiso.PyPardisoSolver(mtype=self.SPD)
         weakref.finalize(self, self.pardiso.free_memory, True)   # MKL's memory is not Python's
         self.run(11)
-        # after the analysis: iparm(16) + iparm(17) = the memory the factorisation keeps and uses, in KiB
-        self.factor_bytes = 1024 * int(self.pardiso.get_iparm(16) + self.pardiso.get_iparm(17))
+        self.factor_bytes = BYTES_PER_ENTRY * int(self.pardiso.get_iparm(18))   # the analysis counts the entries
 
     def run(self, phase, b=None):
         self.pardiso.set_phase(phase)
@@ -133,14 +132,15 @@ def shape_gradients(X, tets):
 
 
 def element_stiffness(g, W, mu, lam):
-    """Ke (m, 4, 4, 3, 3): the 3x3 block between corners a and b of each tet's 12x12 matrix (N/m),
+    """Ke (m, 4, 3, 4, 3): each tet's 12x12 matrix (N/m), rows (corner a, axis i), columns (b, j);
+    Ke.reshape(m, 12, 12) is the textbook one. Its 3x3 block between corners a and b is
 
     Ke_ab = W (lam g_a g_b^T + mu g_b g_a^T + mu (g_a . g_b) I), so that f_a = -sum_b Ke_ab u_b.
     """
     gg = np.einsum("eai,ebi->eab", g, g)
-    Ke = (mu[:, None, None, None, None] * np.einsum("ebi,eaj->eabij", g, g)
-          + lam[:, None, None, None, None] * np.einsum("eai,ebj->eabij", g, g)
-          + (mu[:, None, None] * gg)[..., None, None] * np.eye(3))
+    Ke = (mu[:, None, None, None, None] * np.einsum("ebi,eaj->eaibj", g, g)
+          + lam[:, None, None, None, None] * np.einsum("eai,ebj->eaibj", g, g)
+          + (mu[:, None, None] * gg)[:, :, None, :, None] * np.eye(3)[:, None, :])
     return W[:, None, None, None, None] * Ke
 
 
@@ -220,10 +220,8 @@ class DirectSolver:
 
     def system_matrix(self, R):
         """A = cM M + cK sum_e R Ke R^T (3n x 3n CSR), summed into the fixed pattern."""
-        Rb = R[:, None, None]
-        KR = Rb @ self.Ke @ np.swapaxes(Rb, -1, -2)                       # (m, 4, 4, 3, 3)
-        values = KR.transpose(0, 1, 3, 2, 4).reshape(-1)                   # rows (a, i), cols (b, j)
-        data = self.cK * np.bincount(self.slot, values, minlength=len(self.indices))
+        KR = np.einsum("eij,eajbk,elk->eaibl", R, self.Ke, R, optimize=True)   # R Ke_ab R^T, every block
+        data = self.cK * np.bincount(self.slot, KR.ravel(), minlength=len(self.indices))
         data[self.diagonal] += self.cM * np.repeat(self.mass, 3)
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
 
@@ -269,8 +267,10 @@ class DirectSolver:
     def elastic_forces(self, R):
         """(n, 3) f = sum over tets of -R Ke (R^T x_e - X_e), N."""
         xe, Xe = self.x[self.tets], self.X[self.tets]
+        m = len(self.tets)
         u = np.einsum("eji,eaj->eai", R, xe) - Xe                          # R^T x_e - X_e
-        fe = -np.einsum("eij,eaj->eai", R, np.einsum("eabij,ebj->eai", self.Ke, u))
+        Ku = (self.Ke.reshape(m, 12, 12) @ u.reshape(m, 12, 1)).reshape(m, 4, 3)
+        fe = -np.einsum("eij,eaj->eai", R, Ku)
         f = np.zeros((len(self.X), 3))
         for k in range(3):
             f[:, k] = np.bincount(self.tets.ravel(), fe[:, :, k].ravel(), minlength=len(self.X))
