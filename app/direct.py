@@ -52,7 +52,7 @@ class Pardiso:
     11 (analysis) here, 22 (numeric factorisation) per `factorise`, 33 (solve) per `solve`.
     """
 
-    label = "MKL PARDISO (pypardiso)"
+    label, library = "MKL PARDISO", "pypardiso"
     SPD = 2
 
     def __init__(self, A):
@@ -80,7 +80,7 @@ class Pardiso:
 class Cholmod:
     """CHOLMOD through scikit-sparse: the ordering and symbolic factor once, a numeric Cholesky per `factorise`."""
 
-    label = "CHOLMOD (scikit-sparse)"
+    label, library = "CHOLMOD", "scikit-sparse"
 
     def __init__(self, A):
         self.factor = cholmod.analyze(A.T)            # A is symmetric: A.T is A in CSC, without a copy
@@ -98,7 +98,7 @@ class Cholmod:
 class SuperLU:
     """scipy's SuperLU: orders, analyses and factorises from scratch in every `factorise`."""
 
-    label = "SuperLU (scipy)"
+    label, library = "SuperLU", "scipy"
 
     def __init__(self, A):
         self.factor_bytes = 0

@@ -43,18 +43,20 @@ def test_bench_writes_all_three_files(bench_output):
 
 def test_bench_has_every_variant_once_with_an_error(bench_output):
     scene, rows = rows_of(bench_output)
-    keys = [(r["method"], r["solver"], r["step"], r["dt_factor"], r["tolerance"], r["iterations"]) for r in rows]
+    keys = [(r["method"], r["solver"], r["step"], r["dt_factor"], r["tolerance"], r["iterations"], r.get("backend"))
+            for r in rows]
     assert len(set(keys)) == len(keys) == len(bench.REFERENCES) + len(bench.variants())
     for step in ("newton", "single"):
         for f in bench.DT_FACTORS:
-            assert ("corotational", "pcg", step, f, bench.BASELINE_TOLERANCE, None) in keys
+            assert ("corotational", "pcg", step, f, bench.BASELINE_TOLERANCE, None, None) in keys
         for tol in bench.PCG_TOLERANCES:
-            assert ("corotational", "pcg", step, 1, tol, None) in keys
+            assert ("corotational", "pcg", step, 1, tol, None, None) in keys
     linear_pcg = [k for k in keys if k[:2] == ("linear", "pcg")]
     assert len(linear_pcg) == len(bench.DT_FACTORS) + len(bench.PCG_TOLERANCES) - 1   # not once per step kind
     for method in ("linear", "corotational"):
         assert len([k for k in keys if k[:2] == (method, "jacobi")]) == len(bench.JACOBI_ITERATIONS)
-        assert (method, "direct", "single", 1, None, None) in keys
+        for backend in bench.direct_backends():   # the fastest installed, and SuperLU
+            assert (method, "direct", "single", 1, None, None, backend) in keys
     assert scene["checkpoints"] == [0.08, 0.2]
     for row in rows:
         assert set(row["errors"]) == {"0.08", "0.2"}
@@ -89,12 +91,13 @@ def test_a_rows_time_per_simulated_second_is_its_ms_per_step_over_dt(bench_outpu
 
 
 def test_bench_errors_measure_physics(bench_output):
-    """The direct solve is the one-solve step solved exactly: PCG 1e-6 lands on it. Linear FEM of a
-    spinning bar is further off than either corotational step; only Newton iterates."""
+    """The direct solve is the one-solve step solved exactly: PCG 1e-6 lands on it, whichever solver
+    factorises. Linear FEM of a spinning bar is further off than either corotational step; only Newton iterates."""
     scene, rows = rows_of(bench_output)
     row = {(r["name"], r["step"], r["dt_factor"]): r for r in rows}
-    direct, pcg = row["corotational direct", "single", 1], row["corotational PCG 1e-6", "single", 1]
-    assert direct["errors"]["0.2"] == pytest.approx(pcg["errors"]["0.2"], rel=1e-4)
+    pcg = row["corotational PCG 1e-6", "single", 1]
+    for direct in (r for r in rows if r["method"] == "corotational" and r["solver"] == "direct"):
+        assert direct["errors"]["0.2"] == pytest.approx(pcg["errors"]["0.2"], rel=1e-4)
     for step in ("newton", "single"):
         corotational = row["corotational PCG 1e-4", step, 1]
         assert row["linear PCG 1e-4", "newton", 1]["errors"]["0.2"] > 2 * corotational["errors"]["0.2"]
@@ -110,6 +113,20 @@ def test_headline_numbers_are_the_tables(bench_output):
     assert numbers["newton_over_single_time"] == pytest.approx(newton["s_per_sim_s"] / single["s_per_sim_s"])
     assert numbers["newton_over_single_error"] == pytest.approx(newton["errors"]["0.2"] / single["errors"]["0.2"])
     assert numbers["reference_floor"] == scene["reference_floor"]
+    matrix_free = bench.find(scene, method="corotational", solver="pcg", step="single", dt_factor=1,
+                             tolerance=bench.DIRECT_TOLERANCE)
+    fastest = bench.baseline(scene, "corotational", "single", "direct")
+    assert fastest["backend"] == bench.direct_backends()[0]
+    assert numbers["direct_over_matrix_free"][fastest["backend"]] == pytest.approx(
+        fastest["ms_median"] / matrix_free["ms_median"])
+
+
+def test_a_direct_row_says_where_its_time_goes(bench_output):
+    md = (bench_output / "results.md").read_text()
+    for row in rows_of(bench_output)[1]:
+        if row["solver"] == "direct":
+            assert all(row[k] >= 0 for k in ("analysis_ms", "assembly_ms", "factorise_ms", "solve_ms"))
+            assert f"{row['name']}: rotations" in md
 
 
 def test_bench_refuses_a_non_empty_folder(tmp_path):
