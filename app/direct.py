@@ -14,10 +14,11 @@ the two can check each other. It always runs in float64.
 A's sparsity pattern is the mesh's and never changes: the rotations change its values, and a
 pinned or grounded dof clears its row and column but keeps them. So a solver that can split
 its work analyses the pattern (fill-reducing ordering, symbolic factor) once and only
-refactorises the values each step, as a user who knows their solver would. `BACKENDS`,
-fastest first:
+refactorises the values each step, as a user who knows their solver would. A backend
+`B(A)` analyses what it can of A's pattern; `factorise(A)` for A's values, then `solve(b)`;
+`factor_bytes` is its factor's size. `BACKENDS`, fastest first:
 
-    pardiso   MKL PARDISO (pypardiso, `pip install softfem[fast-direct]`): Cholesky, analysis once
+    pardiso   MKL PARDISO (pypardiso, `pip install ".[fast-direct]"`): Cholesky, analysis once
     cholmod   CHOLMOD (scikit-sparse, if installed): Cholesky, analysis once
     superlu   scipy's SuperLU, always there: LU, ordered and analysed again every step
               (the coursework's way)
@@ -66,6 +67,7 @@ class Pardiso:
         self.factor_bytes = BYTES_PER_ENTRY * int(self.pardiso.get_iparm(18))   # the analysis counts the entries
 
     def run(self, phase, b=None):
+        """One PARDISO phase on U (pypardiso's documented way to call a phase is its `_call_pardiso`)."""
         self.pardiso.set_phase(phase)
         return self.pardiso._call_pardiso(self.U, np.zeros(self.U.shape[0]) if b is None else b)
 
