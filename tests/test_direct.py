@@ -14,7 +14,7 @@ from app import direct
 from app.direct import BACKENDS, DirectSolver, polar_rotations
 from fem.scene import Effects, Initial, Selection, SolverSettings
 
-HOW_TO_INSTALL = {"pardiso": "pypardiso is not installed (the optional extra: pip install ".[fast-direct]")",
+HOW_TO_INSTALL = {"pardiso": 'pypardiso is not installed (the optional extra: pip install ".[fast-direct]")',
                   "cholmod": "scikit-sparse is not installed (optional)"}
 
 
