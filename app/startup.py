@@ -64,3 +64,27 @@ def measure(scene_name, repeats=3, cold=True):
     out["beside_s"], _ = first_step_seconds(scene)
     del alive
     return out
+
+
+def resting_cost(scene_name="epcot", steps=20):
+    """(ms per step with every body asleep, ms per step of the same bodies at rest but awake):
+    the scene without its initial conditions and impulses, so nothing moves."""
+    from dataclasses import replace
+
+    import fem
+    import scenes
+
+    scene = scenes.load_scene(scene_name)
+    scene = replace(scene, initial=[], impulses=[])
+    costs = []
+    for sleep in (True, False):
+        sim = fem.Simulation(replace(scene, solver=replace(scene.solver, sleep=sleep)))
+        for _ in range(40):                  # long enough to fall asleep (25 quiet steps)
+            sim.step()
+        assert all(sim.asleep) == sleep
+        start = time.perf_counter()
+        for _ in range(steps):
+            sim.step()
+        costs.append(1e3 * (time.perf_counter() - start) / steps)
+        del sim
+    return tuple(costs)

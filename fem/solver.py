@@ -16,7 +16,7 @@ by Jacobi-preconditioned CG (or weighted Jacobi iteration), never assembling H: 
 stiffness product runs tet by tet and per-vertex sums gather over the model's adjacency
 (no atomics, so every run is the same bit for bit). A backtracking line search on E
 (Armijo) accepts only iterates that lower E, with E summed in float64 whatever the
-fields' precision. The first Newton iteration from v = v_n is the classical one-solve
+fields' precision. The first Newton iteration from v = 0 is the classical one-solve
 (stiffness-warping) step: `step = "single"` stops there, without line search.
 
 Convergence is tested per body: body b has converged when |grad_b E| <= tol * s_b, with
@@ -219,11 +219,9 @@ class ImplicitSolver:
         rotation_ms = self.update_rotations(self.x, corotational)    # R(x_n)
         if newton:
             self.body_energy(self.x, self.v, self.energy_before, self.energy_size_before)     # x, v = x_n, v_n still
+        self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
         if self.has_stiffness_damping:
             self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
-        self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
-        if newton:
-            rotation_ms += self.update_rotations(self.x, True)   # R at the first iterate x_n + dt v_n
         if corotational or self.preconditioner_key != (cM, cK):
             self.build_preconditioner(cM, cK)                 # linear: built once, as H never changes
             self.preconditioner_key = None if corotational else (cM, cK)
@@ -236,7 +234,7 @@ class ImplicitSolver:
         settled = False
         while rho > 1.0 and newton_iters < (settings.max_newton if newton else 1):
             target = 1.0 if not newton else max(1.0, FORCING ** 2 * rho)
-            solver_iters += self.solve(cM, cK, target)
+            solver_iters += self.solve(self.v0, cM, cK, target, warm=newton_iters == 0)
             newton_iters += 1
             if not newton:
                 rho = float(self.rr[None])                    # the linear solve's own residual
@@ -316,9 +314,9 @@ class ImplicitSolver:
         ti.sync()
         return 1e3 * (time.perf_counter() - start)
 
-    def solve(self, cM, cK, target):
+    def solve(self, v0, cM, cK, target, warm):
         """H d = -grad E until the weighted residual sum_b |r_b|^2 w_b <= target; returns iterations."""
-        self.start_direction()
+        self.start_direction(v0, warm)
         if self.settings.method == "pcg":
             self.stiffness_product(self.solution)
             if self.start_residual(cM, cK) > target:
@@ -564,12 +562,11 @@ class ImplicitSolver:
     @ti.kernel
     def start_iterate(self, x0: ti.template(), v0: ti.template(), x: ti.template(), v: ti.template(),
                       dt: float):
-        """The first Newton iterate: v = v_n (a body whose step changes nothing measurable keeps
-        its velocity), except the normal velocity of vertices on the ground, prescribed so that
-        they land on the plane (the ground's active set is chosen here)."""
+        """The first Newton iterate: v = 0, except the normal velocity of vertices on the ground,
+        prescribed so that they land on the plane (the ground's active set is chosen here)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            u = v0[i]
+            u = ti.Vector.zero(float, 3)
             if ti.static(self.has_ground):
                 self.contact[i] = 0
                 awake = self.awake[self.model.vertex_body[i]]
@@ -588,7 +585,7 @@ class ImplicitSolver:
         for b in range(self.model.body_count[None]):
             self.body_gradient[b] = 0.0
             if ti.static(first):
-                self.body_scale[b] = 0.0
+                self.body_scale[b], self.body_momentum[b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = self.model.mass[i]
@@ -601,20 +598,26 @@ class ImplicitSolver:
             b = self.model.vertex_body[i]
             self.body_gradient[b] += ti.cast(self.filtered(i, rhs).norm_sqr(), ti.f64)
             if ti.static(first):   # |M v_n|^2 + |dt f|^2 + |dt M g|^2: not |rhs|^2, which is ~0 at rest
-                self.body_scale[b] += ti.cast(self.filtered(i, m * v0[i]).norm_sqr()
-                                              + self.filtered(i, tets).norm_sqr()
-                                              + self.filtered(i, g).norm_sqr(), ti.f64)
+                momentum = ti.cast(self.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
+                self.body_momentum[b] += momentum
+                self.body_scale[b] += momentum + ti.cast(self.filtered(i, tets).norm_sqr()
+                                                         + self.filtered(i, g).norm_sqr(), ti.f64)
 
     @ti.kernel
     def gradient_norm(self, tolerance: ti.f64, first: ti.template()) -> ti.f64:
         """sum_b |grad_b|^2 / (tol^2 s_b^2 + floor_b): <= 1 exactly when every body has
-        converged, relative to its own scale s_b or below its round-off floor."""
+        converged, relative to its own scale s_b or below its round-off floor.
+        On the first call a body whose momentum |M v_n| is above the floor counts as not
+        converged: v = 0 is no answer for a moving body, even one so stiff (in f32) that its
+        whole gradient is below the floor; it would stop dead."""
         rho = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             if ti.static(first):
                 self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]
                                                      + self.body_floor[b]), float)
+                if self.body_momentum[b] > self.body_floor[b]:
+                    rho += 2.0
             rho += self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b])
         return rho
 
@@ -796,11 +799,14 @@ class ImplicitSolver:
             self.velocity[i] = v[i]
 
     @ti.kernel
-    def start_direction(self):
-        """d <- 0: the iterate itself is the guess (the first one is v_n)."""
+    def start_direction(self, v0: ti.template(), warm: ti.template()):
+        """d <- filtered v_n - v (first Newton iteration: today's velocity is a good guess) or 0."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            self.solution[i] = ti.Vector.zero(float, 3)
+            d = ti.Vector.zero(float, 3)
+            if ti.static(warm):
+                d = self.filtered(i, v0[i] - self.velocity[i])
+            self.solution[i] = d
 
     @ti.kernel
     def build_preconditioner(self, cM: float, cK: float):
