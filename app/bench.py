@@ -623,6 +623,8 @@ LIMITS = {
     "box50k": "block-Jacobi PCG needs about 25 iterations at 1e-3 on box50k and more as meshes grow and "
               "stiffen; each iteration is at the memory limit (~19 ns/tet). A preconditioner that sees more "
               "than one vertex (two-level, multigrid) is not built",
+    "direct": "the matrix-free step itself: its ~25 block-Jacobi PCG iterations (see box50k above); "
+              "PARDISO's refactorisation on 2 cores is what a user would get, symbolic analysis reused",
     "memory": "the per-corner buffer of the gather (48 B/tet), Bm and Bm R^T (72 B/tet), quaternions and "
               "twist (20 B/tet), and eleven per-vertex CG and Newton vectors",
 }
@@ -635,15 +637,15 @@ def targets(results):
 
     def add(target, goal, value, unit, met, limit):
         text = "–" if value is None else f"{value:.3g} {unit}"
-        verdict = "not measured" if value is None else ("met" if met(value) else "not met")
-        rows.append(f"| {target} | {goal} | {text} | {verdict} | {'' if verdict == 'met' else LIMITS.get(limit, '')} |")
+        verdict = "not measured" if value is None else "reported" if met is None else "met" if met(value) else "not met"
+        rows.append(f"| {target} | {goal} | {text} | {verdict} | {LIMITS.get(limit, '') if verdict == 'not met' else ''} |")
 
     start = results.get("startup", {})
     add("start-up, warm cache", "<= 2 s", start.get("warm_s"), "s", lambda v: v <= 2, "warm")
-    add("start-up, cold cache", "(reported)", start.get("cold_s"), "s", lambda v: True, "")
+    add("start-up, cold cache", "(reported)", start.get("cold_s"), "s", None, "")
     add("second Simulation, same kind, to its first step", "<= 0.3 s", start.get("second_s"), "s",
         lambda v: v <= 0.3, "")
-    add("second Simulation beside a live one", "(reported)", start.get("beside_s"), "s", lambda v: True, "")
+    add("second Simulation beside a live one", "(reported)", start.get("beside_s"), "s", None, "")
     box = by_name.get("box50k")
     row = box and find(box, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=1e-3)
     if row:
@@ -665,7 +667,7 @@ def targets(results):
         ratio = direct_comparison(box)[1]
         fastest = next(r for r in box["variants"] if r["solver"] == "direct")["backend"]
         add(f"direct baseline ({fastest}) over the matrix-free step, box50k", ">= 30 x", ratio[fastest], "x",
-            lambda v: v >= 30, "")
+            lambda v: v >= 30, "direct")
     epcot = by_name.get("epcot")
     row = epcot and baseline(epcot, "corotational", "newton")
     add("memory, epcot, model + state + solver", "<= 200 B/tet", row and row["bytes_per_tet"], "B/tet",
