@@ -30,7 +30,7 @@ def naive_forces(X, T, x):
     Ds = np.stack([x[T[:, k]] - x[T[:, 3]] for k in range(3)], axis=2)
     R = polar_rotations(Ds @ np.linalg.inv(Dm))
     u = np.einsum("eji,eaj->eai", R, x[T] - X[T])                  # R^T (x - X) per corner
-    f = -np.einsum("eij,eabjk,ebk->eai", R, Ke, u)                  # R Ke (R^T u)
+    f = -np.einsum("eij,eajbk,ebk->eai", R, Ke, u)                  # R Ke (R^T u)
     out = np.zeros_like(X)
     np.add.at(out, T.ravel(), f.reshape(-1, 3))
     return out
