@@ -130,7 +130,7 @@ def read_toml_scene(path, build_mesh, data=None):
         bodies=bodies,
         effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
         solver=read_solver(top.table("solver", ["dt", "step", "max_newton", "newton_tolerance", "method", "tolerance",
-                                                 "max_iterations", "jacobi_omega", "rotations"])),
+                                                 "max_iterations", "jacobi_omega", "rotations", "sleep"])),
     )
     scene.solver.check(f"{path}: solver")
     for i, raw in enumerate(list_of_tables(data, "initial", path)):

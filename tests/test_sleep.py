@@ -107,3 +107,10 @@ def test_edits_wake_a_body_and_a_body_resting_on_the_ground_sleeps_on_it():
     run_until_asleep(sim, steps=1500)
     sim.set_state(sim.positions(), sim.velocities())
     assert sim.asleep == [False]
+
+
+def test_sleeping_is_a_scene_setting_that_set_can_turn_off():
+    import scenes
+
+    assert scenes.load_scene("cube86").solver.sleep is True
+    assert scenes.load_scene("cube86", overrides=["solver.sleep=false"]).solver.sleep is False
