@@ -56,7 +56,7 @@ class Simulation:
         settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
         settings.check(scene.path or scene.name)
         self.scene = scene                      # the description; never edited
-        parts = pool.borrow(self, model_arrays(scene), scene.effects, settings)   # compiled already?
+        parts = pool.borrow(self, model_arrays(scene), scene.effects, settings)   # fields, kernels compiled
         self.model, self.solver, self.measure = parts.model, parts.solver, parts.measure
         self.state, self.spare = parts.states
         offsets = [b.vertices.start for b in self.model.bodies]
