@@ -107,21 +107,28 @@ def numbered_path(folder, stem: str, suffix: str) -> Path:
 
 
 @contextlib.contextmanager
+def signals_handled(signals, handler):
+    """Inside the block, `handler(signum, frame)` handles each of `signals`; afterwards the
+    previous handlers are back. Off the main thread signals stay as they are."""
+    try:
+        previous = {s: signal.signal(s, handler) for s in signals}
+    except ValueError:            # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        for s, old in previous.items():
+            signal.signal(s, old)
+
+
 def interrupt_on_sigterm():
     """Treat SIGTERM (a killed job, a cancelled CI step) like Ctrl-C, so that a run
     stops the same way: complete files kept, temporary ones removed, exit code 130."""
     def interrupt(signum, frame):
         raise KeyboardInterrupt
 
-    try:
-        previous = signal.signal(signal.SIGTERM, interrupt)
-    except ValueError:            # not the main thread: signals stay as they are
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    return signals_handled([signal.SIGTERM], interrupt)
 
 
 @contextlib.contextmanager
@@ -130,19 +137,7 @@ def interrupts_deferred():
     frame half sent to the encoder, or a container half closed, would leave a file no
     player can open."""
     arrived = []
-
-    def remember(signum, frame):
-        arrived.append(signum)
-
-    try:
-        previous = {s: signal.signal(s, remember) for s in (signal.SIGINT, signal.SIGTERM)}
-    except ValueError:            # not the main thread: signals stay as they are
+    with signals_handled([signal.SIGINT, signal.SIGTERM], lambda signum, frame: arrived.append(signum)):
         yield
-        return
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
     if arrived:
         raise KeyboardInterrupt
