@@ -12,12 +12,13 @@ PRECISIONS = ("f32", "f64")
 _current = {}
 
 
-def init(arch="cpu", precision="f32", debug=False):
+def init(arch="cpu", precision="f32", debug=False, restart=False):
     """Start Taichi on `arch` ("cpu", "gpu" or "auto": a GPU backend when one exists, else CPU)
     with `precision` ("f32" or "f64") as the float type of every field.
 
-    Returns the backend's name. Calling it again with other settings restarts
-    Taichi, which invalidates every field made before (tests use this).
+    Returns the backend's name. Calling it again with the same settings keeps Taichi
+    running, with every kernel compiled so far (fem/pool.py); with other settings, or
+    `restart=True`, it restarts Taichi, which invalidates every field made before.
     """
     if arch not in ARCHES:
         raise FemError(f"arch must be one of {ARCHES}, got {arch!r}")
@@ -25,6 +26,9 @@ def init(arch="cpu", precision="f32", debug=False):
         raise FemError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     # auto takes CUDA only: a Vulkan "GPU" may be Mesa's software driver, slower than the CPU backend.
     # gpu never probes OpenGL: on a machine without it, Taichi's probe ends the process (segfault).
+    settings = (arch, precision, debug)
+    if not restart and _current.get("settings") == settings and _current.get("runtime") is ti.lang.impl.get_runtime():
+        return _current["arch"]              # running as asked (and nobody called ti.init since)
     brief_source_positions(not debug)
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
@@ -37,7 +41,7 @@ def init(arch="cpu", precision="f32", debug=False):
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
-    _current.update(arch=backend, precision=precision)
+    _current.update(arch=backend, precision=precision, settings=settings, runtime=ti.lang.impl.get_runtime())
     return backend
 
 
@@ -59,7 +63,7 @@ def _brief_pos_info(context, node):
 
 def current():
     """{"arch": backend name, "precision": "f32"|"f64"} of the running Taichi, {} before init."""
-    return dict(_current)
+    return {key: _current[key] for key in ("arch", "precision") if key in _current}
 
 
 # On the CPU every parallel loop pays ~50-100 us to wake Taichi's thread pool (measured on

@@ -20,7 +20,7 @@ def exercise(sim):
 
 
 def test_a_second_simulation_of_the_same_kind_compiles_nothing():
-    fem.init("cpu", "f32")
+    fem.init("cpu", "f32", restart=True)   # nothing compiled yet
     exercise(fem.Simulation(make_scene(box_mesh(2))))
     gc.collect()
     made, compiled = pool.made["parts"], pool.compiled_kernels()
@@ -34,7 +34,7 @@ def test_a_second_simulation_of_the_same_kind_compiles_nothing():
 
 
 def test_another_kind_of_scene_compiles_its_own_kernels():
-    fem.init("cpu", "f32")
+    fem.init("cpu", "f32", restart=True)   # nothing compiled yet
     exercise(fem.Simulation(make_scene(box_mesh(2))))
     gc.collect()
     made, compiled = pool.made["parts"], pool.compiled_kernels()
