@@ -15,11 +15,14 @@ import weakref
 from collections import defaultdict
 from dataclasses import dataclass
 
+import taichi as ti
+
 from fem.measure import Measure
 from fem.model import Capacity, Model, State
 from fem.solver import ImplicitSolver, Switches
 
 _idle = defaultdict(list)          # (Capacity, Switches) -> Parts nobody uses
+_runtime = [None]                  # the Taichi runtime their fields live in
 made = {"parts": 0}                # how many Parts this process has made (tests count compilations with it)
 
 
@@ -36,14 +39,21 @@ def borrow(owner, arrays, effects, settings):
     SolverSettings, loaded with them; they go back to the pool when `owner` is
     garbage-collected."""
     bodies, X, T, mass, free = arrays
+    if _runtime[0] is not ti.lang.impl.get_runtime():     # Taichi restarted: every idle field is gone
+        clear()
     capacity = Capacity.fitting(len(X), len(T), len(bodies))
     key = (capacity, Switches.of(effects, len(X), len(T), bool((free == 0).any())))
     parts = _idle[key].pop() if _idle[key] else make(*key)
     parts.model.load(*arrays)
     parts.solver.load(effects, settings)
     parts.measure.load(effects.gravity)
-    weakref.finalize(owner, _idle[key].append, parts)
+    weakref.finalize(owner, give_back, key, parts, _runtime[0])
     return parts
+
+
+def give_back(key, parts, runtime):
+    if runtime is _runtime[0]:                 # fields made before a restart are not kept
+        _idle[key].append(parts)
 
 
 def make(capacity, switches):
@@ -63,5 +73,6 @@ def compiled_kernels():
 
 
 def clear():
-    """Forget every idle part: Taichi restarted (fem.init), their fields are gone."""
+    """Forget every idle part: Taichi restarted (fem.init, ti.init), their fields are gone."""
     _idle.clear()
+    _runtime[0] = ti.lang.impl.get_runtime()

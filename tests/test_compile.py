@@ -44,3 +44,22 @@ def test_another_kind_of_scene_compiles_its_own_kernels():
         exercise(sim)
     assert pool.made["parts"] == made + 1            # `alive` reused the idle parts
     assert pool.compiled_kernels() > compiled        # the gravity kind compiled its own
+
+
+def test_init_again_with_the_same_settings_keeps_the_kernels_and_a_restart_drops_the_pool():
+    import taichi as ti
+
+    fem.init("cpu", "f32")
+    exercise(fem.Simulation(make_scene(box_mesh(2))))
+    gc.collect()
+    made, compiled = pool.made["parts"], pool.compiled_kernels()
+    fem.init("cpu", "f32")                               # as every command does: nothing restarts
+    exercise(fem.Simulation(make_scene(box_mesh(2))))
+    assert (pool.made["parts"], pool.compiled_kernels()) == (made, compiled)
+
+    gc.collect()
+    ti.init(arch=ti.cpu, default_fp=ti.f32, log_level=ti.ERROR)   # behind fem's back: idle fields are gone
+    sim = fem.Simulation(make_scene(box_mesh(2)))
+    exercise(sim)
+    assert pool.made["parts"] == made + 1 and np.isfinite(sim.positions()).all()
+    fem.init("cpu", "f32", restart=True)                # leave Taichi as fem.init makes it
