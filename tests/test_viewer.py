@@ -259,7 +259,12 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
         wait_for(lambda: frames_after_event(tmp_path, "methods") >= 10, 60, "frames after the toggle")
         subprocess.run(["import", "-window", "root", str(tmp_path / "shot.png")], env=env,
                        check=True, timeout=30)
-        xdotool(env, "key", "--window", wid, "Escape")
+        log.flush()
+        try:
+            xdotool(env, "key", "--window", wid, "Escape")
+        except subprocess.CalledProcessError as failure:
+            raise AssertionError(f"{failure.stderr} (window exit code {window.poll()}):\n"
+                                 + (tmp_path / "view.log").read_text()) from failure
         assert window.wait(30) == 0, (tmp_path / "view.log").read_text()
     finally:
         if window.poll() is None:
