@@ -1,4 +1,5 @@
 """Hard cases (tools/cases.py) stay finite, lose energy under damping, and report what went wrong.
+(test_energy.py: their energy never rises from one step to the next.)
 
 Every case runs with linear and corotational bodies, in f32 and f64. Cases that share a time
 step run as bodies of one Simulation, so Taichi compiles a handful of times, not once per case.
@@ -10,8 +11,7 @@ import numpy as np
 import pytest
 
 import fem
-from tools.cases import (CLI_HARD_CASES, ENERGY_DTS, ENERGY_TOLERANCE, HARD_CASES, METHODS, energy_history,
-                         forced_failures, groups, run_cli_case, run_hard_cases)
+from tools.cases import CLI_HARD_CASES, HARD_CASES, METHODS, forced_failures, groups, run_cli_case, run_hard_cases
 
 PRECISIONS = ("f32", "f64")
 CASES = [pytest.param(case.name, method, id=f"{case.name}-{method}")
@@ -38,20 +38,6 @@ def test_energy_ends_below_its_start_with_damping(outcomes, name, method):
     assert math.isfinite(outcome.energy_end)
     assert outcome.energy_end <= outcome.energy_start * (1 + 1e-3)
     assert outcome.energy_max <= outcome.energy_start * (1 + 1e-3)
-
-
-@pytest.mark.parametrize("precision", PRECISIONS)
-@pytest.mark.parametrize("dt", ENERGY_DTS)
-def test_total_energy_never_rises_from_one_step_to_the_next(precision, dt):
-    """The promise: kinetic + elastic + gravitational energy never rises, for every hard case and
-    both methods, at every time step; per step at most ENERGY_TOLERANCE of the starting energy."""
-    fem.init("cpu", precision)
-    layout, energies = energy_history(dt)
-    rise = np.diff(energies, axis=0).max(axis=0) / np.abs(energies[0])
-    worst = {f"{case.name} ({method})": float(r) for (case, method, _), r in zip(layout, rise)
-             if not r <= ENERGY_TOLERANCE[precision]}
-    assert np.isfinite(energies).all()
-    assert not worst, worst
 
 
 @pytest.mark.parametrize("name", [case.name for case in HARD_CASES if case.inverted])

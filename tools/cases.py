@@ -1,7 +1,7 @@
 """Hard cases and bad inputs, defined once.
 
-tests/test_hard_cases.py, tests/test_bad_input.py and tools/robustness_table.py
-all read these lists, so the table in docs/robustness.md always describes what
+tests/test_hard_cases.py, tests/test_energy.py, tests/test_bad_input.py and
+tools/robustness_table.py all read these lists, so the table in docs/robustness.md always describes what
 the tests check.
 
 Hard cases (`HARD_CASES`) are small scenes built in Python. Every case runs
@@ -125,7 +125,7 @@ HARD_CASES = [
 
 
 # Time steps at which every hard case must show total energy that never rises from one step
-# to the next (tests/test_hard_cases.py, docs/robustness.md), and the rise allowed per step,
+# to the next (tests/test_energy.py, docs/robustness.md), and the rise allowed per step,
 # relative to the case's starting energy, in each precision.
 ENERGY_DTS = (0.001, 0.02, 0.1, 0.5)
 ENERGY_STEPS = 15

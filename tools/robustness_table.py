@@ -141,7 +141,7 @@ is tested per body, so the huge-impulse body shares its solve with the quiet one
 Every hard case, both methods, {ENERGY_STEPS} steps at each time step, all in one scene per dt
 and precision. The column "largest rise" is the largest increase of a case's total energy
 (kinetic + elastic + gravitational) from one step to the next, over its starting energy;
-negative means it only fell. `tests/test_hard_cases.py` requires it below the tolerance.
+negative means it only fell. `tests/test_energy.py` requires it below the tolerance.
 
 | dt (s) | precision | largest rise (closest case) | tolerance | kept |
 |---|---|---|---|---|
