@@ -11,17 +11,25 @@ shape runs with `main.py simulate my_shape.obj`.
 """
 
 import difflib
+import hashlib
 import inspect
 from pathlib import Path
 
+import numpy as np
+
 from fem.errors import FemError
-from fem.mesh import MESHIO_READ_EXTENSIONS, read_tet_mesh
+from fem.mesh import MESHIO_READ_EXTENSIONS, TetMesh, read_tet_mesh
 
 from assets.bunny import bunny
 from assets.generators import box, dome, statue
-from assets.tetrahedralize import load_surface, tetrahedralize_surface
+from assets.tetrahedralize import (cache_dir, load_surface, read_cache_entry, tetrahedralize_surface,
+                                   write_cache_entry)
 
 GENERATORS = {"box": box, "dome": dome, "statue": statue, "bunny": bunny}
+# Generators that take a noticeable part of a start (a few tenths of a second): their meshes
+# are cached beside the tetrahedralised surfaces, keyed by the parameters and the code.
+CACHED_GENERATORS = {"dome", "statue"}
+GENERATOR_CODE = [Path(__file__).parent / name for name in ("generators.py", "lattice.py")]
 
 SOURCES = ("generator", "file", "surface")
 
@@ -102,7 +110,18 @@ def _from_generator(spec):
     _check_keys(spec, {"generator", *defaults}, f"generator {name!r}")
     params = {key: _typed(value, defaults[key], key)
               for key, value in spec.items() if key != "generator"}
-    return generator(**params)
+    if name not in CACHED_GENERATORS:
+        return generator(**params)
+    key = hashlib.sha256(f"{name}|{sorted(params.items())!r}".encode())
+    for path in GENERATOR_CODE:
+        key.update(path.read_bytes())
+    cached = cache_dir() / f"generated-{key.hexdigest()}.npz"
+    arrays = read_cache_entry(cached, "source")
+    if arrays is not None:
+        return TetMesh(arrays[0], arrays[1], str(arrays[2]))
+    mesh = generator(**params)
+    write_cache_entry(cached, (mesh.vertices, mesh.tets), source=np.array(mesh.source))
+    return mesh
 
 
 def _check_keys(spec, allowed, what):

@@ -9,7 +9,6 @@ valid for FEM whatever the shape.
 """
 
 import numpy as np
-from scipy import ndimage
 
 from fem.mesh import (boundary_faces, check_tet_count, dihedral_angles, prepare_mesh,
                       signed_volumes)
@@ -90,6 +89,8 @@ def manifold_cells(filled):
     filled in; then only the largest face-connected piece is kept and its
     inner cavities are filled, so the surface is a single closed sheet.
     """
+    from scipy import ndimage         # here, not at the top: a run that builds no lattice never imports it
+
     filled = filled.copy()
     while True:
         before = filled.copy()

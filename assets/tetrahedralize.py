@@ -66,7 +66,7 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
     cached = cache_dir() / f"{key.hexdigest()}.npz"
     source = f"{path} (tetrahedralised, edge_length={edge_length})"
 
-    arrays = _load_cached(cached)
+    arrays = read_cache_entry(cached)
     last_cache_hit = arrays is not None
     if arrays is None:
         estimate = round(TETS_AT_5_PERCENT * (0.05 / edge_length) ** 3)
@@ -77,30 +77,30 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
             print(f"tetrahedralising {path.name} ({len(faces)} triangles) with wildmeshing, "
                   f"edge length {edge_length} x bbox diagonal ...", file=sys.stderr, flush=True)
         arrays = _run_wildmeshing(vertices, faces, edge_length, path)
-        _store(cached, arrays)
+        write_cache_entry(cached, arrays)
         if progress:
             print(f"  done in {time.perf_counter() - start:.1f} s: {len(arrays[1])} tets, "
                   f"{len(arrays[0])} vertices; cached in {cached}", file=sys.stderr)
     return prepare_mesh(*arrays, source)
 
 
-def _load_cached(cached):
-    """(vertices, tets) from a cache file, or None when it is absent or unreadable."""
+def read_cache_entry(cached, *names):
+    """(vertices, tets, *names) from a cache file, or None when it is absent or unreadable."""
     try:
         with np.load(cached) as data:
-            return data["vertices"], data["tets"]
+            return tuple(data[name] for name in ("vertices", "tets", *names))
     # A damaged cache entry is rebuilt, not reported: the cache is disposable.
     except (OSError, KeyError, ValueError):
         return None
 
 
-def _store(cached, arrays):
+def write_cache_entry(cached, arrays, **more):
     """Write the cache entry atomically; a cache that cannot be written is only a warning."""
     try:
         cached.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=cached.parent, suffix=".tmp",
                                          delete=False) as file:
-            np.savez(file, vertices=arrays[0], tets=arrays[1])
+            np.savez(file, vertices=arrays[0], tets=arrays[1], **more)
         os.replace(file.name, cached)
     except OSError as error:
         print(f"warning: could not cache the tet mesh in {cached.parent}: {error}",

@@ -112,16 +112,14 @@ class Model:
         start = np.searchsorted(T.ravel()[order], np.arange(n + 1))
 
         self.vertex_count[None], self.tet_count[None], self.body_count[None] = n, m, len(bodies)
-        self.write(self.rest_positions, X)
-        self.write(self.tets, T)
-        self.write(self.Bm, np.linalg.inv(Dm))
-        self.write(self.rest_volume, np.abs(np.linalg.det(Dm)) / 6)
-        self.write(self.mass, mass)
-        self.write(self.free, free)
-        self.write(self.vertex_body, self.vertex_body_np)
-        self.write(self.tet_body, self.tet_body_np)
-        self.write(self.adjacency_start, start.astype(np.int32), pad=start[-1])
-        self.write(self.adjacency, order.astype(np.int32))
+        rows, padded = self.capacity.vertices, self.padded      # one kernel per kind of row, not per field
+        self._load_vertices(padded(X, rows), padded(mass, rows), padded(free, rows),
+                            padded(self.vertex_body_np, rows, np.int32),
+                            padded(start, rows + 1, np.int32, pad=start[-1]))
+        rows = self.capacity.tets
+        self._load_tets(padded(T, rows, np.int32), padded(np.linalg.inv(Dm), rows),
+                        padded(np.abs(np.linalg.det(Dm)) / 6, rows), padded(self.tet_body_np, rows, np.int32),
+                        padded(order.reshape(-1, 4), rows, np.int32))
         self.version = 0
         for i, b in enumerate(bodies):
             self.set_material(i, b.material)
@@ -130,11 +128,35 @@ class Model:
     @staticmethod
     def write(field, values, pad=0):
         """field <- values (numpy, the first len(values) rows); the rows beyond get `pad`."""
-        rows = field.shape[0]
         values = np.asarray(values)
-        full = np.full((rows,) + values.shape[1:], pad, dtype=values.dtype)
+        field.from_numpy(Model.padded(values, field.shape[0], values.dtype, pad))
+
+    @staticmethod
+    def padded(values, rows, dtype=np.float64, pad=0):
+        """values (numpy) as `rows` rows of `dtype`, the rows beyond len(values) filled with `pad`."""
+        full = np.full((rows,) + np.shape(values)[1:], pad, dtype=dtype)
         full[:len(values)] = values
-        field.from_numpy(full)
+        return full
+
+    @ti.kernel
+    def _load_vertices(self, X: ti.types.ndarray(), mass: ti.types.ndarray(), free: ti.types.ndarray(),
+                       body: ti.types.ndarray(), start: ti.types.ndarray()):
+        for i in range(X.shape[0]):
+            self.rest_positions[i] = ti.Vector([X[i, 0], X[i, 1], X[i, 2]])
+            self.mass[i], self.free[i], self.vertex_body[i] = mass[i], free[i], body[i]
+        for i in range(start.shape[0]):
+            self.adjacency_start[i] = start[i]
+
+    @ti.kernel
+    def _load_tets(self, T: ti.types.ndarray(), Bm: ti.types.ndarray(), volume: ti.types.ndarray(),
+                   body: ti.types.ndarray(), slots: ti.types.ndarray()):
+        for e in range(T.shape[0]):
+            for k in ti.static(range(4)):
+                self.tets[e][k] = T[e, k]
+                self.adjacency[4 * e + k] = slots[e, k]
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                self.Bm[e][i, j] = Bm[e, i, j]
+            self.rest_volume[e], self.tet_body[e] = volume[e], body[e]
 
     # ------------------------------------------------------------ live edits: the one path
 
@@ -201,5 +223,11 @@ class State:
         self.v = ti.Vector.field(3, float, capacity)
 
     def load(self, x, v):
-        Model.write(self.x, x)
-        Model.write(self.v, v)
+        rows = self.x.shape[0]
+        self._load(Model.padded(x, rows), Model.padded(v, rows))
+
+    @ti.kernel
+    def _load(self, x: ti.types.ndarray(), v: ti.types.ndarray()):
+        for i in range(x.shape[0]):
+            self.x[i] = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])
+            self.v[i] = ti.Vector([v[i, 0], v[i, 1], v[i, 2]])

@@ -8,6 +8,10 @@ import taichi as ti
 from fem.errors import FemError
 
 ARCHES = ("auto", "cpu", "gpu")
+# Taichi's offline cache drops its least recently used kernels beyond this size (its own
+# default, 100 MB, is about 3000 kernels: a few scenes in two precisions and the tests
+# overflow it, and the next start of a scene compiles again, seconds instead of one).
+OFFLINE_CACHE_BYTES = 512 * 2**20
 PRECISIONS = ("f32", "f64")
 _current = {}
 
@@ -35,7 +39,7 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
     # Taichi prints a banner on stdout; keep stdout for our own output
     with contextlib.redirect_stdout(io.StringIO()):
         ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug,
-                offline_cache=True, log_level=ti.ERROR)
+                offline_cache=True, offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR)
     from fem import pool        # the fields of every idle Simulation's parts are gone
     pool.clear()
     backend = ti.lang.impl.current_cfg().arch.name

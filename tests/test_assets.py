@@ -1,5 +1,8 @@
 """Tests for assets/: generators, surface tetrahedralisation and its cache, build_mesh."""
 
+import functools
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -263,3 +266,25 @@ def test_build_mesh_errors_name_the_place(tmp_path, spec, message):
     with pytest.raises(FemError, match=message) as error:
         assets.build_mesh(spec, tmp_path, WHERE)
     assert str(error.value).startswith(WHERE)
+
+
+def test_a_lattice_generators_mesh_is_cached_by_parameters_and_code(cache, monkeypatch):
+    spec = {"generator": "dome", "resolution": 6}
+    made = assets.build_mesh(spec, Path("."), "test")
+    assert len(list(cache.glob("generated-*.npz"))) == 1
+
+    @functools.wraps(dome)                # the same parameters
+    def must_not_run(**params):
+        raise AssertionError("built again instead of read from the cache")
+
+    monkeypatch.setitem(assets.GENERATORS, "dome", must_not_run)
+    again = assets.build_mesh(spec, Path("."), "test")
+    np.testing.assert_array_equal(again.vertices, made.vertices)
+    np.testing.assert_array_equal(again.tets, made.tets)
+    assert again.source == made.source and again.tets.dtype == made.tets.dtype
+
+    with pytest.raises(AssertionError, match="built again"):      # other parameters: another entry
+        assets.build_mesh({"generator": "dome", "resolution": 7}, Path("."), "test")
+    monkeypatch.setattr(assets, "GENERATOR_CODE", [Path(assets.__file__)])   # other code: another entry
+    with pytest.raises(AssertionError, match="built again"):
+        assets.build_mesh(spec, Path("."), "test")
