@@ -87,13 +87,15 @@ class Simulation:
             return
         self.solver.body_speeds(self.state.v)
         speed = np.sqrt(self.solver.body_speed.to_numpy()[:len(self.awake)])
+        fell = False
         for b, body in enumerate(self.model.bodies):
             quiet = self.awake[b] and speed[b] * self.settings.dt <= QUIET_MOTION * body.size
             self.quiet[b] = self.quiet[b] + 1 if quiet else 0
             if self.quiet[b] >= QUIET_STEPS:
-                self.awake[b] = False
+                self.awake[b], fell = False, True
                 self.solver.hold(self.state.v, body.vertices.start, body.vertices.stop)
-        self.solver.wake(self.awake)
+        if fell:
+            self.solver.wake(self.awake)
 
     # ------------------------------------------------------------ running
 
