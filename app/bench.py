@@ -613,12 +613,14 @@ def markdown(results):
 
 # What limits each speed target that a run does not meet (profiles taken on the 2-core machine).
 LIMITS = {
-    "warm": "the warm start is Python importing numpy, scipy, trimesh and Taichi (about 1 s), Taichi's "
-            "frontend translating each of the ~40 kernels a step and its stats launch (it does so even when "
-            "the offline cache then supplies the compiled code; its per-node source excerpts, half of that "
-            "time, are cut), and loading the cached code",
-    "rotation": "warm-started Newton steps on the polar decomposition, two per tet in f32 plus the check "
-                "that certifies them: about 300 flops and 100 bytes per tet, on 2 cores",
+    "warm": "a warm start is Python's imports (about 0.3 s), Taichi's frontend translating the ~30 kernels "
+            "a step and its summary launch (about 1.1 s: it translates even when the offline cache then "
+            "supplies the compiled code) and LLVM turning each cached kernel into machine code (about 1.2 s, "
+            "10 to 40 ms a kernel); fewer, larger kernels would cut the last two",
+    "rotation": "on box50k, reading a tet's corners and Bm, forming F and writing Bm R^T and the quaternion "
+                "alone takes about 12 ns/tet on 2 cores, one bare Newton step on the polar decomposition "
+                "36 ns/tet, and the certified extraction (its error bound checked, the twist stiffness) about "
+                "80 ns/tet: 15 ns/tet leaves no room for the rotation's arithmetic on this machine",
     "fixed": "rotation extraction, once per step (and once per line-search trial with Newton)",
     "box50k": "block-Jacobi PCG needs about 25 iterations at 1e-3 on box50k and more as meshes grow and "
               "stiffen; each iteration is at the memory limit (~19 ns/tet). A preconditioner that sees more "

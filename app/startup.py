@@ -1,7 +1,7 @@
 """What a user waits before the first step, measured (the benchmark's start-up rows).
 
     cold    `main.py simulate SCENE --steps 1` in a new process, Taichi's offline cache empty
-    warm    the same again: the cache holds every kernel the first run compiled
+    warm    the same with the user's own offline cache, after one run that fills it
     second  in one process, a second Simulation of the scene made after the first one is
             dropped, to the end of its first step (its kernels are compiled already, fem/pool.py)
     beside  the same while the first one is still alive: it needs parts of its own
@@ -20,9 +20,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def process_seconds(scene, cache):
-    """Wall time of `main.py simulate SCENE --steps 1` with Taichi's offline cache in `cache`."""
-    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(cache))
+def process_seconds(scene, cache=None):
+    """Wall time of `main.py simulate SCENE --steps 1` with Taichi's offline cache in `cache`
+    (None: where it always is)."""
+    env = dict(os.environ, **({"TI_OFFLINE_CACHE_FILE_PATH": str(cache)} if cache else {}))
     start = time.perf_counter()
     subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", scene, "--steps", "1"],
                    env=env, check=True, capture_output=True, timeout=600)
@@ -45,13 +46,12 @@ def measure(scene_name, repeats=3, cold=True):
     import scenes
 
     out = {}
-    with tempfile.TemporaryDirectory() as folder:
-        if cold:
+    if cold:
+        with tempfile.TemporaryDirectory() as folder:
             out["cold_s"] = statistics.median(process_seconds(scene_name, Path(folder) / f"cold{k}")
                                               for k in range(repeats))
-        warm = Path(folder) / "warm"
-        process_seconds(scene_name, warm)                  # fills the cache
-        out["warm_s"] = statistics.median(process_seconds(scene_name, warm) for _ in range(repeats))
+    process_seconds(scene_name)                            # fills the cache where it lacks the scene's kernels
+    out["warm_s"] = statistics.median(process_seconds(scene_name) for _ in range(repeats))
     scene = scenes.load_scene(scene_name)
     first_step_seconds(scene)                              # compiles, then the Simulation is dropped
     seconds = []

@@ -10,7 +10,13 @@ from tools.cases import ENERGY_DTS, ENERGY_TOLERANCE, energy_history
 PRECISIONS = ("f32", "f64")
 
 
-@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.fixture(scope="module", params=PRECISIONS)
+def precision(request):
+    """Every test of one precision, then every test of the other: Taichi restarts once for each."""
+    fem.init("cpu", request.param)
+    return request.param
+
+
 @pytest.mark.parametrize("dt", ENERGY_DTS)
 def test_total_energy_never_rises_from_one_step_to_the_next(precision, dt):
     """The promise: kinetic + elastic + gravitational energy never rises, for every hard case and

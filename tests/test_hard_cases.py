@@ -19,9 +19,16 @@ CASES = [pytest.param(case.name, method, id=f"{case.name}-{method}")
 
 
 @pytest.fixture(scope="module", params=PRECISIONS)
-def outcomes(request):
-    """{(case name, method): Outcome} of every hard case in one precision."""
+def precision(request):
+    """Every test of one precision, then every test of the other: Taichi restarts once for each."""
     fem.init("cpu", request.param)
+    return request.param
+
+
+@pytest.fixture(scope="module")
+def outcomes(precision):
+    """{(case name, method): Outcome} of every hard case in one precision."""
+    fem.init("cpu", precision)
     return {(o.case.name, o.method): o for group in groups() for o in run_hard_cases(group)}
 
 
@@ -48,7 +55,6 @@ def test_corotational_bodies_recover_from_an_inverted_start(outcomes, name):
     assert all(abs(ratio - 1) < 0.05 for ratio in outcome.volume_ratio_end)
 
 
-@pytest.mark.parametrize("precision", PRECISIONS)
 def test_capped_solves_and_non_finite_steps_are_reported(precision, capsys):
     fem.init("cpu", precision)
     result = forced_failures(lambda: capsys.readouterr().err)
