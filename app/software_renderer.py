@@ -124,7 +124,11 @@ class SoftwareRenderer(Renderer):
         self.backdrop.from_numpy(background(width, height))
 
     def render(self, vertices, faces, colors, camera, ground_y=None) -> np.ndarray:
-        frame = build_frame(vertices, faces, colors, camera, ground_y, self.smooth)
+        self.draw(build_frame(vertices, faces, colors, camera, ground_y, self.smooth), camera)
+        return self.image.to_numpy()
+
+    def draw(self, frame, camera):
+        """Render a Frame into `image` (height, width) u8, left on the device (the window shows it)."""
         buffers = self.buffers
         buffers.upload(frame)
         if self.screen is None or self.screen.shape != buffers.positions.shape:
@@ -138,4 +142,11 @@ class SoftwareRenderer(Renderer):
         shade(self.visible, self.screen, buffers.triangles, buffers.positions, buffers.normals,
               buffers.colors, self.backdrop, self.image, frame.light_positions,
               frame.light_intensities)
-        return self.image.to_numpy()
+
+
+@ti.kernel
+def to_window_layout(image: ti.template(), out: ti.template()):
+    """out[column, row from the bottom] = image[row from the top, column] / 255: a GGUI canvas image."""
+    height = image.shape[0]
+    for y, x in image:
+        out[x, height - 1 - y] = ti.cast(image[y, x], ti.f32) / 255.0

@@ -26,7 +26,8 @@ from app.colors import VertexColoring
 from app.display import display_problem
 from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
 from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
-from app.render import AMBIENT, FrameBuffers, background, build_frame
+from app.render import background, build_frame
+from app.software_renderer import SoftwareRenderer, to_window_layout
 
 PANEL_WIDTH = 0.29              # of the window's width, on the right
 LABEL_SIZE = (0.14, 0.04)       # of the window: the title boxes naming the copies of --compare
@@ -111,7 +112,11 @@ class Viewer:
         self.gui = self.window.get_gui()
         self.backdrop = ti.Vector.field(3, ti.f32, (width, height))
         self.backdrop.from_numpy(_to_ggui_layout(background(width, height)))
-        self.buffers = FrameBuffers()
+        # The bodies are rasterised by Taichi kernels and shown as the canvas's image: GGUI's own
+        # 3D scene (Taichi 1.7) keeps a few hundred kB per mesh drawn, every frame, until the
+        # process ends (gigabytes in an hour). Only the click marker goes through it.
+        self.rasteriser = SoftwareRenderer(width, height, smooth=True)
+        self.picture = ti.Vector.field(3, ti.f32, (width, height))
         self.marker_point = ti.Vector.field(3, ti.f32, 1)
         self.marker_arrow = ti.Vector.field(3, ti.f32, 16)
         self.sim = None
@@ -377,7 +382,8 @@ class Viewer:
         self.x = self.sim.positions()
         frame = build_frame(self.x, self.sim.model.surface, self.coloring.colors(self.sim), self.camera,
                             ground_y=self.ground_y(), smooth=True)
-        self.buffers.upload(frame)
+        self.rasteriser.draw(frame, self.camera)
+        to_window_layout(self.rasteriser.image, self.picture)
         cam, g = self.camera, self.ggui_camera
         g.position(*cam.eye)
         g.lookat(*cam.target)
@@ -385,17 +391,12 @@ class Viewer:
         g.fov(cam.fov_deg)
         g.z_near(cam.near)
         g.z_far(cam.far)
-        indices = np.ascontiguousarray(frame.triangles.ravel())   # GGUI reads it at show()
         with _quiet_taichi():
-            self.canvas.set_image(self.backdrop)
-            self.scene3d.set_camera(g)
-            self.scene3d.ambient_light((AMBIENT,) * 3)
-            for position, intensity in zip(frame.light_positions, frame.light_intensities):
-                self.scene3d.point_light(tuple(position), (float(intensity),) * 3)
-            self.scene3d.mesh(self.buffers.positions, indices=indices, normals=self.buffers.normals,
-                              per_vertex_color=self.buffers.colors)
-            self.draw_marker()
-            self.canvas.scene(self.scene3d)
+            self.canvas.set_image(self.picture)
+            if self.draw_marker():
+                self.scene3d.set_camera(g)
+                self.scene3d.ambient_light((1.0,) * 3)
+                self.canvas.scene(self.scene3d)
             self.draw_copy_labels()
             self.draw_panel()
             if self.show_help:
@@ -418,7 +419,8 @@ class Viewer:
                 g.text("")
 
     def draw_marker(self):
-        """The last click's hit point and its push as an arrow, or the drag in progress."""
+        """The last click's hit point and its push as an arrow, or the drag in progress, into the
+        3D scene; returns whether there is one to draw (drawn over the bodies)."""
         if self.press is not None and self.press.hit is not None:
             drag = self.cursor() - self.press.pixel
             if np.linalg.norm(drag) > DRAG_PIXELS:
@@ -428,7 +430,7 @@ class Viewer:
                 self.marker = (self.press.hit.point, strength * direction / np.linalg.norm(direction))
                 self.marker_until = time.perf_counter() + MARKER_SECONDS
         if self.marker is None or time.perf_counter() > self.marker_until:
-            return
+            return False
         point, delta_v = self.marker
         self.marker_point.from_numpy(point[None].astype(np.float32))
         self.scene3d.particles(self.marker_point, radius=0.025 * self.size, color=MARKER_COLOR)
@@ -436,6 +438,7 @@ class Viewer:
         self.marker_arrow.from_numpy(arrow_beads(point, delta_v, 0.4 * self.size / max(self.strength, 1e-9),
                                                  self.marker_arrow.shape[0]).astype(np.float32))
         self.scene3d.particles(self.marker_arrow, radius=0.012 * self.size, color=MARKER_COLOR)
+        return True
 
     def capture(self):
         rgba = self.window.get_image_buffer_as_numpy()

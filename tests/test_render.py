@@ -96,6 +96,18 @@ def test_software_cube_is_drawn_where_it_projects(software, cube_scene):
     assert reddish(image)[HEIGHT // 2, WIDTH // 2]
 
 
+def test_the_windows_picture_is_the_software_image_in_ggui_layout(software, cube_scene):
+    """The window shows the rasteriser's image through GGUI's canvas (not GGUI's leaking 3D
+    scene): columns first, row 0 at the bottom, colours in 0..1."""
+    from app.ggui_renderer import _to_ggui_layout
+    from app.software_renderer import to_window_layout
+
+    image = software.render(*cube_scene)
+    picture = ti.Vector.field(3, ti.f32, (WIDTH, HEIGHT))
+    to_window_layout(software.image, picture)
+    np.testing.assert_allclose(picture.to_numpy(), _to_ggui_layout(image) / 255.0, atol=1e-6)
+
+
 def test_software_near_triangle_hides_far_one_in_either_order(software):
     near = [[-1.0, -1.0, 0.5], [1.0, -1.0, 0.5], [0.0, 1.0, 0.5]]
     far = [[-1.0, -1.0, -0.5], [1.0, -1.0, -0.5], [0.0, 1.0, -0.5]]
