@@ -134,7 +134,8 @@ class Viewer:
     # ------------------------------------------------------------ scenes
 
     def load(self, ref):
-        """Build the simulation of a scene and compile its kernels before the first frame."""
+        """Build the simulation of a scene; its first frame shows it at rest, then `warm_up`
+        compiles every kernel its steps need (a scene of the same kind: none)."""
         self.show_loading(ref)
         args = self.args
         scene = scenes.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None)
@@ -145,7 +146,7 @@ class Viewer:
         self.sim = None       # the old scene's fields go back to the pool: a scene of the same kind compiles nothing
         sim = fem.Simulation(scene, method=None if args.compare else args.method, solver=args.solver,
                              dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters, step=args.step)
-        warm_up(sim)
+        self.warm_up_due = True          # after the scene's first frame is shown (loop)
         self.sim, self.ref = sim, ref
         model = sim.model
         self.body_starts = np.array([b.vertices.start for b in model.bodies])
@@ -196,7 +197,7 @@ class Viewer:
             self.handle_mouse()
             if not self.window.running:
                 break
-            if not self.paused:
+            if not self.paused and not self.warm_up_due:
                 self.advance(frame_seconds)
             self.stats = self.sim.stats()
             self.draw()
@@ -206,6 +207,9 @@ class Viewer:
                 stats_file.flush()   # a reader (or a test) can follow the frames as they come
             self.events = []
             self.frame += 1
+            if self.warm_up_due:         # the scene is on screen: now compile what its steps need
+                warm_up(self.sim)
+                self.warm_up_due, last = False, time.perf_counter()
         self.stop_video()
 
     def advance(self, frame_seconds):
@@ -255,6 +259,10 @@ class Viewer:
         for event in self.window.get_events(ti.ui.RELEASE):
             if event.key == ti.ui.LMB and self.press is not None:
                 self.release(self.cursor())
+        # After a slow frame (a scene's warm-up) a click's release can come before its press:
+        # a press whose button is already up is a whole click.
+        if self.press is not None and not self.window.is_pressed(ti.ui.LMB):
+            self.release(self.cursor())
 
     def handle_mouse(self):
         """Right drag orbits; middle drag or shift + right drag pans."""
