@@ -30,19 +30,38 @@ def precision(request):
 
 # ---------------------------------------------------------------- extraction in Taichi
 
+# The kernels take numpy arrays (ndarrays), not fields: one compilation per precision serves
+# every test, where fields of each test's shape would compile the SVD again and again.
+
+@ti.func
+def matrix_at(F: ti.template(), t, i):
+    M = ti.Matrix.zero(float, 3, 3)
+    for a, b in ti.static(ti.ndrange(3, 3)):
+        M[a, b] = F[t, i, a, b]
+    return M
+
+
+@ti.func
+def quaternion_at(q: ti.template(), i):
+    return ti.Vector([q[i, 0], q[i, 1], q[i, 2], q[i, 3]], float)
+
+
 @ti.kernel
-def _extract(F: ti.template(), q_start: ti.template(), R: ti.template(), q: ti.template()):
-    for i in q_start:
-        q_i = q_start[i]
+def _extract(F: ti.types.ndarray(), q_start: ti.types.ndarray(), R: ti.types.ndarray(), q: ti.types.ndarray()):
+    for i in range(q_start.shape[0]):
+        q_i = quaternion_at(q_start, i)
         for t in range(F.shape[0]):          # steps in order: each starts from the last answer
-            R[t, i], q_i = rotation_of(F[t, i], q_i)
-            q[t, i] = q_i
+            R_t, q_i = rotation_of(matrix_at(F, t, i), q_i)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                R[t, i, a, b] = R_t[a, b]
+            for k in ti.static(range(4)):
+                q[t, i, k] = q_i[k]
 
 
 @ti.kernel
-def _newton_converges(F: ti.template(), q_start: ti.template(), converged: ti.template()):
-    for i in q_start:
-        q, ok = newton_rotation(F[i], q_start[i])
+def _newton_converges(F: ti.types.ndarray(), q_start: ti.types.ndarray(), converged: ti.types.ndarray()):
+    for i in range(q_start.shape[0]):
+        q, ok = newton_rotation(matrix_at(F, 0, i), quaternion_at(q_start, i))
         converged[i] = ok
 
 
@@ -50,24 +69,17 @@ def extract(F, q_start):
     """(R, q) of rotation_of for F (steps, n, 3, 3), each tet from q_start (n, 4), then from its
     previous answer; returned as float64 arrays (steps, n, 3, 3) and (steps, n, 4)."""
     steps, n = F.shape[:2]
-    F_field = ti.Matrix.field(3, 3, float, (steps, n))
-    R_field = ti.Matrix.field(3, 3, float, (steps, n))
-    q_field = ti.Vector.field(4, float, (steps, n))
-    start = ti.Vector.field(4, float, n)
-    F_field.from_numpy(F)
-    start.from_numpy(q_start)
-    _extract(F_field, start, R_field, q_field)
-    return R_field.to_numpy().astype(np.float64), q_field.to_numpy().astype(np.float64)
+    R, q = np.zeros((steps, n, 3, 3)), np.zeros((steps, n, 4))
+    _extract(np.ascontiguousarray(F, np.float64), np.ascontiguousarray(q_start, np.float64), R, q)
+    return R, q
 
 
 def newton_converges(F, q_start):
     """(n,) bool: newton_rotation alone certifies its answer for F (n, 3, 3) from q_start (n, 4)."""
-    n = len(F)
-    F_field, start, converged = ti.Matrix.field(3, 3, float, n), ti.Vector.field(4, float, n), ti.field(ti.i32, n)
-    F_field.from_numpy(F)
-    start.from_numpy(q_start)
-    _newton_converges(F_field, start, converged)
-    return converged.to_numpy().astype(bool)
+    converged = np.zeros(len(F), np.int32)
+    _newton_converges(np.ascontiguousarray(F[None], np.float64), np.ascontiguousarray(q_start, np.float64),
+                      converged)
+    return converged.astype(bool)
 
 
 # ---------------------------------------------------------------- references in numpy, float64
