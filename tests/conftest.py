@@ -49,3 +49,14 @@ def fan_tets(vertices, faces, edge_length, path):
     centre = len(vertices)
     return (np.vstack([vertices, vertices.mean(axis=0)]),
             np.hstack([faces, np.full((len(faces), 1), centre)]))
+
+
+# pytest-xdist hands out whole files in the order they were collected; the longest start
+# first, so that the processes finish together instead of one waiting on the last long file.
+LONGEST_FIRST = ["test_hard_cases.py", "test_scenes.py", "test_energy.py", "test_solver.py", "test_figures.py",
+                 "test_sleep.py", "test_readme.py", "test_bench.py", "test_cli.py", "test_compile.py"]
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONGEST_FIRST)))   # stable: each file's order kept
