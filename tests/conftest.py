@@ -22,6 +22,12 @@ def f64():
 
 
 @pytest.fixture
+def f32():
+    """Taichi on the CPU in single precision, as the command line runs it (a restart only after f64)."""
+    fem.init("cpu", "f32")
+
+
+@pytest.fixture
 def cggs():
     if not CGGS.is_dir():
         pytest.skip(f"coursework files not found at {CGGS} (they live beside the project, not in it)")

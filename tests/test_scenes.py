@@ -22,7 +22,7 @@ def test_the_six_seed_scenes_are_listed_with_descriptions():
 
 
 @pytest.mark.parametrize("name", BUILTIN)
-def test_builtin_scene_runs_half_a_second_in_both_methods(f64, name):
+def test_builtin_scene_runs_half_a_second_in_both_methods(f32, name):
     sim = fem.Simulation(scenes.load_scene(name))
     for method in ("linear", "corotational"):
         sim.set_method(method)
@@ -36,7 +36,7 @@ def test_builtin_scene_runs_half_a_second_in_both_methods(f64, name):
 
 
 @pytest.mark.parametrize("name", COURSEWORK)
-def test_coursework_scene_runs_in_both_methods(f64, cggs, name):
+def test_coursework_scene_runs_in_both_methods(f32, cggs, name):
     sim = fem.Simulation(scenes.load_scene(cggs / f"{name}-scene.txt"))
     assert sim.settings.dt == 0.02 and sim.scene.effects.alpha == 0.1 and sim.scene.effects.beta == 0.1
     for method in ("linear", "corotational"):
@@ -46,7 +46,7 @@ def test_coursework_scene_runs_in_both_methods(f64, cggs, name):
             assert sim.step()["finite"]
 
 
-def test_coursework_epcot_linear_inflates_and_corotational_keeps_volume(f64, cggs):
+def test_coursework_epcot_linear_inflates_and_corotational_keeps_volume(f32, cggs):
     """The coursework's own measurement: at t = 2 s linear epcot is about 2x, corotational 1.000."""
     scene = scenes.load_scene(cggs / "epcot-scene.txt")
     assert len(scene.initial) == 3            # the header says 3; the 4th line is never read
