@@ -50,7 +50,8 @@ class Capacity:
 
     @classmethod
     def fitting(cls, n_vertices, n_tets, n_bodies):
-        return cls(cls.rounded(n_vertices, 1024), cls.rounded(n_tets, 4096), cls.rounded(n_bodies, 4))
+        # per-body fields are tiny: room for 32 bodies lets scenes of 1 to 32 bodies share kernels
+        return cls(cls.rounded(n_vertices, 1024), cls.rounded(n_tets, 4096), cls.rounded(n_bodies, 32))
 
 
 @ti.data_oriented
