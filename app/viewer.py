@@ -392,16 +392,16 @@ class Viewer:
                             ground_y=self.ground_y(), smooth=True)
         self.rasteriser.draw(frame, self.camera)
         to_window_layout(self.rasteriser.image, self.picture)
-        cam, g = self.camera, self.ggui_camera
-        g.position(*cam.eye)
-        g.lookat(*cam.target)
-        g.up(*cam.up)
-        g.fov(cam.fov_deg)
-        g.z_near(cam.near)
-        g.z_far(cam.far)
         with _quiet_taichi():
             self.canvas.set_image(self.picture)
-            if self.draw_marker():
+            if self.draw_marker():               # GGUI's 3D scene only while a marker shows
+                cam, g = self.camera, self.ggui_camera
+                g.position(*cam.eye)
+                g.lookat(*cam.target)
+                g.up(*cam.up)
+                g.fov(cam.fov_deg)
+                g.z_near(cam.near)
+                g.z_far(cam.far)
                 self.scene3d.set_camera(g)
                 self.scene3d.ambient_light((1.0,) * 3)
                 self.canvas.scene(self.scene3d)
