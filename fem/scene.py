@@ -17,6 +17,7 @@ from fem.mesh import TetMesh, signed_volumes
 # (docs/method.md), forces under a pure rotation; it always takes the one-solve step.
 METHODS = ("linear", "corotational", "corotational-naive")
 SOLVERS = ("pcg", "jacobi")
+PRECONDITIONERS = ("two-level", "jacobi")
 ROTATIONS = ("iterative", "svd")
 STEPS = ("newton", "single")
 
@@ -106,6 +107,7 @@ class SolverSettings:
     tolerance: float = 1e-4             # per body: |grad E| / (size of the step's own terms)
     max_iterations: int = 200           # linear solver iterations per Newton iteration
     jacobi_omega: float | None = None   # None: chosen from a spectral estimate
+    preconditioner: str = "two-level"   # PCG's: "two-level" (block Jacobi + rigid patches) | "jacobi" (block Jacobi)
     rotations: str = "iterative"        # "iterative" (warm-started, SVD when inverted) | "svd"
     sleep: bool = True                  # a body at rest sleeps: no work for it until something wakes it
 
@@ -124,6 +126,8 @@ class SolverSettings:
             raise FemError(f"{where}: tolerance must be > 0, got {self.tolerance}")
         if not self.max_iterations >= 1:
             raise FemError(f"{where}: max_iterations must be >= 1, got {self.max_iterations}")
+        if self.preconditioner not in PRECONDITIONERS:
+            raise FemError(f"{where}: preconditioner must be one of {PRECONDITIONERS}, got {self.preconditioner!r}")
         if self.rotations not in ROTATIONS:
             raise FemError(f"{where}: rotations must be one of {ROTATIONS}, got {self.rotations!r}")
         if self.jacobi_omega is not None and not 0 < self.jacobi_omega < 2:

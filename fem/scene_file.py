@@ -130,7 +130,7 @@ def read_toml_scene(path, build_mesh, data=None):
         bodies=bodies,
         effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
         solver=read_solver(top.table("solver", ["dt", "step", "max_newton", "newton_tolerance", "method", "tolerance",
-                                                 "max_iterations", "jacobi_omega", "rotations", "sleep"])),
+                                                 "max_iterations", "jacobi_omega", "preconditioner", "rotations", "sleep"])),
     )
     scene.solver.check(f"{path}: solver")
     for i, raw in enumerate(list_of_tables(data, "initial", path)):
@@ -284,6 +284,7 @@ def read_solver(t):
     s.tolerance = t.get("tolerance", "float", s.tolerance)
     s.max_iterations = t.get("max_iterations", "int", s.max_iterations)
     s.jacobi_omega = t.get("jacobi_omega", "float", None)
+    s.preconditioner = t.get("preconditioner", "str", s.preconditioner)
     s.rotations = t.get("rotations", "str", s.rotations)
     s.sleep = t.get("sleep", "bool", s.sleep)
     return s

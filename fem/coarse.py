@@ -1,0 +1,285 @@
+"""The coarse level of the two-level preconditioner: patches of a body that move rigidly.
+
+Block Jacobi sees one vertex at a time. An error that is smooth over the whole body (a bar
+bending, a body turning) is corrected only a vertex's width per CG iteration, so iteration
+counts grow with the mesh's size and its stiffness. A coarse level sees those errors whole:
+
+    z = P r = D^-1 r + Q A_c^-1 Q^T r          (additive two-level Schwarz)
+
+D: the 3x3 diagonal blocks of H (block Jacobi). Q: the rigid motions of patches of the
+mesh. Each body's vertices are split into patches of about PATCH_VERTICES vertices by
+recursive coordinate bisection; a patch a has 6 coarse dofs, a velocity t_a and a spin w_a,
+and moves vertex i of it by
+
+    u_i = R_a (t_a + w_a x Y_i),     Y_i = X_i - C_a (rest offset from the patch's centre)
+
+(pinned vertices do not move). These are the rigid-body modes that smoothed aggregation
+builds elasticity's coarse spaces from (Vanek, Mandel and Brezina 1996). R_a is the patch's
+best-fit rotation, so the patch's motions follow a spinning body.
+
+A_c = Q0^T H0 Q0 is H at rest (R = I, no twist term) seen by the patches at rest (Q0:
+R_a = I): the same matrix in every patch's frame, made once per materials and dt, in
+float64, and kept as a dense inverse. In a rotated patch, R_a A_c R_a^T is the exact Galerkin
+matrix of a body that moved rigidly; a body that also deforms gets a nearby matrix. Either
+way P stays symmetric positive definite, which is all PCG needs: the coarse level changes
+how many iterations a solve takes, never what it converges to.
+"""
+
+import numpy as np
+import scipy.linalg
+import taichi as ti
+
+from fem.rotation import newton_rotation, quaternion_matrix
+
+PATCH_VERTICES = 90      # vertices per patch, about (measured on box50k: 90 to 300 per patch, 128 to 32 patches)
+MAX_PATCHES = 128        # patches of all bodies together at most: the coarse matrix is at most 768 x 768
+ROTATION_STEPS = 8       # Newton steps per step on a patch's rotation, from the last one
+
+
+def split(ids, X, parts):
+    """Recursive coordinate bisection: ids (vertex indices) in `parts` groups of about equal
+    size, each cut across the longest side of its group's bounding box. Returns a list of arrays."""
+    if parts == 1:
+        return [ids]
+    P = X[ids]
+    order = ids[np.argsort(P[:, np.argmax(P.max(0) - P.min(0))], kind="stable")]
+    left = parts // 2
+    cut = len(order) * left // parts
+    return split(order[:cut], X, left) + split(order[cut:], X, parts - left)
+
+
+def patches(X, bodies, max_patches=MAX_PATCHES):
+    """(n,) patch of every vertex: each body in about n_b / PATCH_VERTICES patches (at least one),
+    fewer when the bodies together would have more than max_patches."""
+    sizes = np.array([b.vertices.stop - b.vertices.start for b in bodies])
+    wanted = np.maximum(1, np.round(sizes / PATCH_VERTICES)).astype(int)
+    while wanted.sum() > max_patches and wanted.max() > 1:
+        wanted = np.maximum(1, wanted // 2)
+    if wanted.sum() > max_patches:
+        raise ValueError(f"{len(bodies)} bodies need more than {max_patches} patches")
+    patch = np.empty(len(X), np.int32)
+    first = 0
+    for body, parts in zip(bodies, wanted):
+        ids = np.arange(body.vertices.start, body.vertices.stop)
+        for group in split(ids, X, min(parts, len(ids))):
+            patch[group] = first
+            first += 1
+    return patch
+
+
+def shape_gradients(X, T):
+    """(m, 4, 3) gradients of the four linear shape functions of every tet, and (m,) volumes."""
+    Dm = np.stack([X[T[:, k]] - X[T[:, 3]] for k in range(3)], axis=2)
+    Bm = np.linalg.inv(Dm)                     # rows: gradients of corners 0, 1, 2
+    g = np.concatenate([Bm, -Bm.sum(axis=1, keepdims=True)], axis=1)
+    return g, np.abs(np.linalg.det(Dm)) / 6
+
+
+def rigid_modes(X, patch, mass, free):
+    """Phi (n, 3, 6): u_i = Phi_i (t, w) = t + w x Y_i for free vertices, 0 for pinned ones;
+    and the patches' mass-weighted rest centres C (patches, 3)."""
+    count = patch.max() + 1
+    weight = np.bincount(patch, mass, count)
+    C = np.stack([np.bincount(patch, mass * X[:, d], count) for d in range(3)], axis=1) / weight[:, None]
+    Y = X - C[patch]
+    Phi = np.zeros((len(X), 3, 6))
+    Phi[:, :, :3] = np.eye(3)
+    Phi[:, 0, 4], Phi[:, 0, 5] = Y[:, 2], -Y[:, 1]          # w x Y = -[Y]x w
+    Phi[:, 1, 3], Phi[:, 1, 5] = -Y[:, 2], Y[:, 0]
+    Phi[:, 2, 3], Phi[:, 2, 4] = Y[:, 1], -Y[:, 0]
+    return Phi * free[:, None, None], C
+
+
+def coarse_matrices(X, T, mu, lam, mass, free, patch, chunk=8192):
+    """(M_c, K_c): Q0^T M Q0 and Q0^T K0 Q0 (6 patches square, float64), K0 the stiffness at rest.
+
+    K0's 3x3 block of corners a, b of a tet is W (mu (g_a . g_b) I + mu g_b g_a^T + lam g_a g_b^T)
+    (method.md); each block reaches the coarse matrix as Phi_a^T K_ab Phi_b, tets in chunks."""
+    count = patch.max() + 1
+    Phi, _ = rigid_modes(X, patch, mass, free)
+    K = np.zeros((count * count, 6, 6))
+    for s in range(0, len(T), chunk):
+        t = T[s:s + chunk]
+        g, W = shape_gradients(X, t)
+        dots = np.einsum("mai,mbi->mab", g, g)
+        Kab = (mu[s:s + chunk, None, None, None, None] * (dots[..., None, None] * np.eye(3)
+                                                          + np.einsum("mbi,maj->mabij", g, g))
+               + lam[s:s + chunk, None, None, None, None] * np.einsum("mai,mbj->mabij", g, g))
+        Kab *= W[:, None, None, None, None]
+        Pe = Phi[t]                                               # (m, 4, 3, 6)
+        blocks = np.einsum("maip,mabij,mbjq->mabpq", Pe, Kab, Pe, optimize=True)
+        keys = (patch[t][:, :, None] * count + patch[t][:, None, :]).ravel()
+        flat = blocks.reshape(-1, 36)
+        for pq in range(36):
+            K[:, pq // 6, pq % 6] += np.bincount(keys, flat[:, pq], count * count)
+    K = K.reshape(count, count, 6, 6).transpose(0, 2, 1, 3).reshape(6 * count, 6 * count)
+    Mb = np.zeros((count, 6, 6))
+    np.add.at(Mb, patch, mass[:, None, None] * np.einsum("nip,niq->npq", Phi, Phi))
+    return scipy.linalg.block_diag(*Mb), 0.5 * (K + K.T)
+
+
+def inverse(A):
+    """The inverse of the symmetric positive semi-definite A, scaled to a unit diagonal first.
+    Rows that are all zero (patches of pinned vertices only) stay zero; where round-off has
+    made A numerically singular (a huge dt), the pseudo-inverse of its well-defined part."""
+    used = np.diag(A) > 0
+    scale = 1.0 / np.sqrt(np.diag(A)[used])
+    B = A[np.ix_(used, used)] * scale[:, None] * scale[None, :]
+    try:
+        inner = scipy.linalg.cho_solve(scipy.linalg.cho_factor(B), np.eye(len(B)))
+    except np.linalg.LinAlgError:
+        values, vectors = np.linalg.eigh(B)
+        keep = values > 1e-12 * values.max()
+        inner = (vectors[:, keep] / values[keep]) @ vectors[:, keep].T
+    out = np.zeros_like(A)
+    out[np.ix_(used, used)] = scale[:, None] * inner * scale[None, :]
+    return 0.5 * (out + out.T)
+
+
+@ti.data_oriented
+class Patches:
+    """The coarse level's fields and the passes of one preconditioner application.
+
+    Fields (p patches in use of `capacity`):
+        patch (n,), members (n,), start (p+1,)   vertex -> patch, and each patch's vertices
+        centre (p, 3)              C_a, m
+        spread_inverse (p, 3x3)    (sum m Y Y^T)^-1 of the patch at rest, 1/(kg m^2)
+        rotates (p,)               1: R_a follows the body (corotational), 0: R_a = I
+        quaternion (p, 4), frame (p, 3x3)   R_a
+        coarse_inverse (6p, 6p)    A_c^-1
+        g, y (6p,)                 Q^T r and A_c^-1 Q^T r
+    """
+
+    def __init__(self, model):
+        n, capacity = model.capacity.vertices, self.fitting(model.capacity)
+        self.model, self.capacity = model, capacity
+        self.patch = ti.field(ti.i32, n)
+        self.members = ti.field(ti.i32, n)
+        self.start = ti.field(ti.i32, capacity + 1)
+        self.centre = ti.Vector.field(3, float, capacity)
+        self.spread_inverse = ti.Matrix.field(3, 3, float, capacity)
+        self.rotates = ti.field(ti.i32, capacity)
+        self.quaternion = ti.Vector.field(4, float, capacity)
+        self.frame = ti.Matrix.field(3, 3, float, capacity)
+        self.coarse_inverse = ti.field(float, (6 * capacity, 6 * capacity))
+        self.g = ti.field(float, 6 * capacity)
+        self.y = ti.field(float, 6 * capacity)
+        self.count = ti.field(ti.i32, ())
+        self.key = None
+
+    @staticmethod
+    def fitting(capacity):
+        """Room for the patches of a model of this capacity: PATCH_VERTICES each, up to MAX_PATCHES,
+        and at least one per body."""
+        wanted = 1 << max(0, -(-capacity.vertices // PATCH_VERTICES) - 1).bit_length()
+        return max(capacity.bodies, min(MAX_PATCHES, wanted))
+
+    def load(self):
+        """Split the model's bodies into patches (a new scene)."""
+        model = self.model
+        X, mass = model.rest_positions_np, model.mass_np
+        patch = patches(X, model.bodies, self.capacity)
+        count = int(patch.max()) + 1
+        self.patch_np, self.count[None] = patch, count
+        _, C = rigid_modes(X, patch, mass, np.ones(len(X)))
+        Y = X - C[patch]
+        spread = np.zeros((count, 3, 3))
+        np.add.at(spread, patch, mass[:, None, None] * np.einsum("ni,nj->nij", Y, Y))
+        members = np.argsort(patch, kind="stable")
+        start = np.searchsorted(patch[members], np.arange(count + 1))
+        write, cap = model.write, self.capacity
+        write(self.patch, patch)
+        write(self.members, members)
+        write(self.start, model.padded(start, cap + 1, np.int32, pad=start[-1]))
+        write(self.centre, C)
+        write(self.spread_inverse, np.linalg.pinv(spread))
+        self.key = None
+        self.reset()
+
+    def reset(self):
+        self.quaternion.from_numpy(np.tile([0.0, 0.0, 0.0, 1.0], (self.capacity, 1)))
+        self.frame.from_numpy(np.tile(np.eye(3), (self.capacity, 1, 1)))
+
+    def refresh(self, cM, cK):
+        """A_c^-1 for H = cM M + cK K0, when the materials, methods or dt changed."""
+        model = self.model
+        key = (model.version, cM, cK)
+        if key == self.key:
+            return
+        if self.key is None or self.key[0] != model.version:
+            mu = np.concatenate([np.full(b.tets.stop - b.tets.start, b.material.E / (2 * (1 + b.material.nu)))
+                                 for b in model.bodies])
+            lam = np.concatenate([np.full(b.tets.stop - b.tets.start, b.material.E * b.material.nu
+                                          / ((1 + b.material.nu) * (1 - 2 * b.material.nu)))
+                                  for b in model.bodies])
+            self.mass_matrix, self.stiffness_matrix = coarse_matrices(
+                model.rest_positions_np, model.tets_np, mu, lam, model.mass_np,
+                model.free_np.astype(np.float64), self.patch_np)
+            rotates = np.array(self._rotating(), np.int32)
+            model.write(self.rotates, rotates)
+            self.reset()                              # linear patches: R_a = I
+        size = 6 * self.capacity
+        model.write(self.coarse_inverse, np.pad(inverse(cM * self.mass_matrix + cK * self.stiffness_matrix),
+                                                ((0, size - 6 * self.count[None]), (0, size - 6 * self.count[None]))))
+        self.key = key
+
+    def _rotating(self):
+        """(patches,) whether each patch's body is corotational (its R_a follows it)."""
+        first = np.zeros(self.count[None], np.int64)
+        first[self.patch_np[::-1]] = np.arange(len(self.patch_np))[::-1]
+        return [self.model.bodies[self.model.vertex_body_np[i]].method != "linear" for i in first]
+
+    @ti.kernel
+    def update_frames(self, x: ti.template()):
+        """R_a <- the rotation of the patch's best-fit deformation F = (sum m y Y^T)(sum m Y Y^T)^-1,
+        y = x - (its mass-weighted centre), by Newton steps from the last R_a (any rotation will
+        do for a preconditioner; the steps just keep it close)."""
+        for a in range(self.count[None]):
+            if self.rotates[a]:
+                mass, centre = 0.0, ti.Vector.zero(float, 3)
+                for j in range(self.start[a], self.start[a + 1]):
+                    i = self.members[j]
+                    mass += self.model.mass[i]
+                    centre += self.model.mass[i] * x[i]
+                centre /= mass
+                S = ti.Matrix.zero(float, 3, 3)
+                for j in range(self.start[a], self.start[a + 1]):
+                    i = self.members[j]
+                    S += self.model.mass[i] * (x[i] - centre).outer_product(
+                        self.model.rest_positions[i] - self.centre[a])
+                q, _ = newton_rotation(S @ self.spread_inverse[a], self.quaternion[a], ROTATION_STEPS)
+                self.quaternion[a] = q
+                self.frame[a] = quaternion_matrix(q)
+
+    @ti.func
+    def restrict(self, r: ti.template(), on):
+        """g <- Q^T r: per patch, the sum of R_a^T r_i and of Y_i x R_a^T r_i (force and torque)."""
+        for a in range(self.count[None] * on):
+            force, torque = ti.Vector.zero(float, 3), ti.Vector.zero(float, 3)
+            Rt = self.frame[a].transpose()
+            for j in range(self.start[a], self.start[a + 1]):
+                i = self.members[j]
+                f = Rt @ r[i]
+                force += f
+                torque += (self.model.rest_positions[i] - self.centre[a]).cross(f)
+            for k in ti.static(range(3)):
+                self.g[6 * a + k] = force[k]
+                self.g[6 * a + 3 + k] = torque[k]
+
+    @ti.func
+    def solve(self, on):
+        """y <- A_c^-1 g: a dense product, a row per thread."""
+        size = 6 * self.count[None]
+        for row in range(size * on):
+            s = 0.0
+            for col in range(size):
+                s += self.coarse_inverse[row, col] * self.g[col]
+            self.y[row] = s
+
+    @ti.func
+    def prolong(self, i):
+        """(Q y)_i = R_a (t_a + w_a x Y_i), a = vertex i's patch (before filtering)."""
+        a = self.patch[i]
+        t = ti.Vector([self.y[6 * a], self.y[6 * a + 1], self.y[6 * a + 2]])
+        w = ti.Vector([self.y[6 * a + 3], self.y[6 * a + 4], self.y[6 * a + 5]])
+        return self.frame[a] @ (t + w.cross(self.model.rest_positions[i] - self.centre[a]))
