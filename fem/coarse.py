@@ -150,9 +150,10 @@ class Patches:
         g, y (6p,)                 Q^T r and A_c^-1 Q^T r
     """
 
-    def __init__(self, model):
+    def __init__(self, model, serial):
         n, capacity = model.capacity.vertices, self.fitting(model.capacity)
         self.model, self.capacity = model, capacity
+        self.serial = serial                  # the solver's vertex loops run on one thread: these too
         self.patch = ti.field(ti.i32, n)
         self.members = ti.field(ti.i32, n)
         self.start = ti.field(ti.i32, capacity + 1)
@@ -234,6 +235,7 @@ class Patches:
         """R_a <- the rotation of the patch's best-fit deformation F = (sum m y Y^T)(sum m Y Y^T)^-1,
         y = x - (its mass-weighted centre), by Newton steps from the last R_a (any rotation will
         do for a preconditioner; the steps just keep it close)."""
+        ti.loop_config(serialize=self.serial)
         for a in range(self.count[None]):
             if self.rotates[a]:
                 mass, centre = 0.0, ti.Vector.zero(float, 3)
@@ -254,6 +256,7 @@ class Patches:
     @ti.func
     def restrict(self, r: ti.template(), on):
         """g <- Q^T r: per patch, the sum of R_a^T r_i and of Y_i x R_a^T r_i (force and torque)."""
+        ti.loop_config(serialize=self.serial)
         for a in range(self.count[None] * on):
             force, torque = ti.Vector.zero(float, 3), ti.Vector.zero(float, 3)
             Rt = self.frame[a].transpose()
@@ -270,6 +273,7 @@ class Patches:
     def solve(self, on):
         """y <- A_c^-1 g: a dense product, a row per thread."""
         size = 6 * self.count[None]
+        ti.loop_config(serialize=self.serial)
         for row in range(size * on):
             s = 0.0
             for col in range(size):

@@ -17,7 +17,7 @@ from fem.mesh import TetMesh, signed_volumes
 # (docs/method.md), forces under a pure rotation; it always takes the one-solve step.
 METHODS = ("linear", "corotational", "corotational-naive")
 SOLVERS = ("pcg", "jacobi")
-PRECONDITIONERS = ("two-level", "jacobi")
+PRECONDITIONERS = ("auto", "two-level", "jacobi")
 ROTATIONS = ("iterative", "svd")
 STEPS = ("newton", "single")
 
@@ -107,7 +107,8 @@ class SolverSettings:
     tolerance: float = 1e-4             # per body: |grad E| / (size of the step's own terms)
     max_iterations: int = 200           # linear solver iterations per Newton iteration
     jacobi_omega: float | None = None   # None: chosen from a spectral estimate
-    preconditioner: str = "two-level"   # PCG's: "two-level" (block Jacobi + rigid patches) | "jacobi" (block Jacobi)
+    preconditioner: str = "auto"        # PCG's: "two-level" (block Jacobi + rigid patches, fem/coarse.py) |
+                                        # "jacobi" (block Jacobi) | "auto": two-level from 2000 vertices up
     rotations: str = "iterative"        # "iterative" (warm-started, SVD when inverted) | "svd"
     sleep: bool = True                  # a body at rest sleeps: no work for it until something wakes it
 

@@ -146,7 +146,8 @@ class Simulation:
                   "rejected it and kept the previous state", file=sys.stderr)
             self.warned_nonfinite = True
         self.last = {"step": self.steps, "t": self.t, "wall_ms": 1e3 * (time.perf_counter() - start),
-                     "solver": self.settings.method, "step_kind": self.step_kind, **asdict(info),
+                     "solver": self.settings.method, "preconditioner": self.solver.preconditioner,
+                     "step_kind": self.step_kind, **asdict(info),
                      "corotational": [b.method == "corotational" for b in self.model.bodies],
                      "asleep": self.asleep}
         return self.last

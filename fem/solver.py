@@ -48,6 +48,7 @@ MAX_HALVINGS = 12        # line search: a >= 2^-12
 FORCING = 0.1            # inexact Newton: CG reduces the gradient by this factor (at least)
 ROUNDOFF = 30.0          # per-body floor of the stopping test, in units of the precision's epsilon
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
+TWO_LEVEL_VERTICES = 2000   # "auto": below, block Jacobi is as fast (its iterations cost less; measured)
 NAIVE = 2                # Model.corotational of a tet of the naive variant (fem.scene.METHODS)
 
 
@@ -199,16 +200,25 @@ class ImplicitSolver:
     # ------------------------------------------------------------ the step
 
     @property
-    def two_level(self):
-        """PCG with the coarse level of rigid patches (fem/coarse.py)."""
+    def preconditioner(self):
+        """The PCG preconditioner in use: "two-level" or "jacobi" (block Jacobi); None for Jacobi iteration.
+        "auto" takes the two-level one from TWO_LEVEL_VERTICES up, where it wins (docs/benchmark.md)."""
         settings = self.settings
-        return settings.method == "pcg" and settings.preconditioner == "two-level"
+        if settings.method != "pcg":
+            return None
+        if settings.preconditioner == "auto":
+            return "two-level" if self.model.n_vertices >= TWO_LEVEL_VERTICES else "jacobi"
+        return settings.preconditioner
+
+    @property
+    def two_level(self):
+        return self.preconditioner == "two-level"
 
     def prepare_patches(self, cM, cK, corotational):
         """The coarse level for this step: patches split once per scene, A_c^-1 once per
         materials and dt, the patches' rotations at x_n every corotational step."""
         if self.patches is None:
-            self.patches = Patches(self.model)
+            self.patches = Patches(self.model, self.serial_vertices)
         if not self.patches_loaded:
             self.patches.load()
             self.patches_loaded = True
@@ -850,8 +860,9 @@ class ImplicitSolver:
 
     @ti.kernel
     def build_preconditioner(self, cM: float, cK: float):
-        """block_inverse <- inverse of the 3x3 diagonal blocks of H = cM M + cK K(R)."""
-        ti.loop_config(serialize=self.serial_vertices)
+        """block_inverse <- inverse of the 3x3 diagonal blocks of H = cM M + cK K(R).
+        A loop over vertices with the work of a loop over tets (every corner): threaded like one."""
+        ti.loop_config(serialize=self.serial_tets)
         for i in range(self.model.vertex_count[None]):
             if not self.awake[self.model.vertex_body[i]]:      # filtered to 0 while asleep
                 continue

@@ -10,7 +10,7 @@ from conftest import make_scene
 import fem
 from app.direct import DirectSolver
 from fem.coarse import Patches, coarse_matrices, patches, rigid_modes
-from fem.scene import Effects, Initial, Selection, SolverSettings
+from fem.scene import Initial, Selection, SolverSettings
 from tools.cases import cube
 
 pytestmark = pytest.mark.usefixtures("f64")
@@ -20,7 +20,7 @@ def bar(E=1e5, nu=0.3, pinned=None, method="corotational", **solver):
     """A 2 x 1 x 1 m bar of 6^3 stretched cells (6 tets each; 343 vertices, 4 patches), spinning about y and twisting about x."""
     mesh = cube(cells=6, size=(1.0, 1.0, 1.0))
     mesh = type(mesh)(mesh.vertices * [2.0, 1.0, 1.0], mesh.tets, mesh.source)
-    settings = dict(dt=0.02, tolerance=1e-8, max_iterations=1000, step="single")
+    settings = dict(dt=0.02, tolerance=1e-8, max_iterations=1000, step="single", preconditioner="two-level")
     scene = make_scene(mesh, method, E=E, nu=nu, density=1000.0, pinned=pinned,
                        solver=SolverSettings(**{**settings, **solver}))
     scene.initial = [Initial(Selection(None), "spin", (np.array([0.0, 1.0, 0.0]), 2.0)),
@@ -148,7 +148,14 @@ def test_linear_bodies_keep_unrotated_patches():
     assert np.abs(sim.solver.patches.frame.to_numpy()[0] - np.eye(3)).max() > 1e-3
 
 
-def test_preconditioner_setting_is_checked():
+def test_preconditioner_setting_is_checked_and_auto_picks_by_size():
     with pytest.raises(fem.FemError, match="preconditioner must be one of"):
         SolverSettings(preconditioner="multigrid").check("scene")
-    assert Effects() is not None
+    small, large = bar(preconditioner="auto"), bar(preconditioner="auto")
+    mesh = cube(cells=12)                                     # 2197 vertices: from 2000 up, two-level
+    large.bodies[0].mesh = type(mesh)(mesh.vertices * [2.0, 1.0, 1.0], mesh.tets, mesh.source)
+    assert fem.Simulation(small).step()["preconditioner"] == "jacobi"
+    assert fem.Simulation(large).step()["preconditioner"] == "two-level"
+    jacobi_iteration = bar(preconditioner="two-level", method="corotational")
+    jacobi_iteration.solver.method = "jacobi"                 # the preconditioner is PCG's alone
+    assert fem.Simulation(jacobi_iteration).step()["preconditioner"] is None
