@@ -157,3 +157,16 @@ def test_docs_writes_the_committed_pages_from_the_full_plan_only(tmp_path, monke
     for extra in (["--quick"], ["--scenes", "cube86"]):
         with pytest.raises(fem.FemError, match="--docs records the full benchmark"):
             bench.destination(main.build_parser().parse_args(["bench", "--docs", *extra]))
+
+
+def test_bench_compares_the_preconditioners_and_the_stiff_bar(bench_output):
+    results = json.loads((bench_output / "results.json").read_text())
+    (scene,) = results["scenes"]
+    for p in (scene["preconditioners"], results["stiff"]["preconditioners"]):
+        assert p["auto"] == "jacobi"                          # box80: far below TWO_LEVEL_VERTICES
+        for name in ("jacobi", "two-level"):
+            assert p[name]["ms_median"] > 0 and p[name]["iters_per_step"] >= 1
+    stiff, soft = results["stiff"]["preconditioners"], scene["preconditioners"]
+    assert stiff["jacobi"]["iters_per_step"] > soft["jacobi"]["iters_per_step"]   # 10 x E: more iterations
+    md = (bench_output / "results.md").read_text()
+    assert "## Preconditioners" in md and "box80, E 1e+06 Pa, nu 0.4" in md and "stiff bar (box80" in md
