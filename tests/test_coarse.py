@@ -159,3 +159,19 @@ def test_preconditioner_setting_is_checked_and_auto_picks_by_size():
     jacobi_iteration = bar(preconditioner="two-level", method="corotational")
     jacobi_iteration.solver.method = "jacobi"                 # the preconditioner is PCG's alone
     assert fem.Simulation(jacobi_iteration).step()["preconditioner"] is None
+
+
+@pytest.mark.parametrize("precision", ["f64", "f32"])    # f32 last: the module's other tests run in f64
+def test_energy_never_rises_with_the_two_level_newton_step(precision):
+    """The step's promise holds whatever the preconditioner: a spinning, twisting near-incompressible
+    bar, Newton step, two-level PCG at the scenes' default tolerance."""
+    from tools.cases import ENERGY_TOLERANCE
+    fem.init("cpu", precision)
+    sim = fem.Simulation(bar(E=1e6, nu=0.45, step="newton", tolerance=1e-4))
+    energies = [sim.stats()["total_energy"]]
+    for _ in range(40):
+        assert sim.step()["preconditioner"] == "two-level"
+        energies.append(sim.stats()["total_energy"])
+    rise = np.diff(energies).max() / abs(energies[0])
+    assert np.isfinite(energies).all() and rise <= ENERGY_TOLERANCE[precision]
+    assert energies[-1] < energies[0]
