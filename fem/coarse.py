@@ -90,32 +90,34 @@ def rigid_modes(X, patch, mass, free):
     return Phi * free[:, None, None], C
 
 
-def coarse_matrices(X, T, mu, lam, mass, free, patch, chunk=8192):
-    """(M_c, K_c): Q0^T M Q0 and Q0^T K0 Q0 (6 patches square, float64), K0 the stiffness at rest.
+def coarse_matrices(X, T, mass, free, patch, chunk=8192):
+    """(M_c, K_mu, K_lam) (6 patches square, float64): Q0^T M Q0, and Q0^T K0 Q0 for mu = 1, lam = 0
+    and for mu = 0, lam = 1. K0 is linear in mu and lam, and no tet joins two bodies, so a body's
+    materials only scale its own rows and columns (`Patches.refresh`).
 
     K0's 3x3 block of corners a, b of a tet is W (mu (g_a . g_b) I + mu g_b g_a^T + lam g_a g_b^T)
     (method.md); each block reaches the coarse matrix as Phi_a^T K_ab Phi_b, tets in chunks."""
     count = patch.max() + 1
     Phi, _ = rigid_modes(X, patch, mass, free)
-    K = np.zeros((count * count, 6, 6))
+    parts = np.zeros((2, count * count, 6, 6))
     for s in range(0, len(T), chunk):
         t = T[s:s + chunk]
         g, W = shape_gradients(X, t)
         dots = np.einsum("mai,mbi->mab", g, g)
-        Kab = (mu[s:s + chunk, None, None, None, None] * (dots[..., None, None] * np.eye(3)
-                                                          + np.einsum("mbi,maj->mabij", g, g))
-               + lam[s:s + chunk, None, None, None, None] * np.einsum("mai,mbj->mabij", g, g))
-        Kab *= W[:, None, None, None, None]
-        Pe = Phi[t]                                               # (m, 4, 3, 6)
-        blocks = np.einsum("maip,mabij,mbjq->mabpq", Pe, Kab, Pe, optimize=True)
+        K_mu = dots[..., None, None] * np.eye(3) + np.einsum("mbi,maj->mabij", g, g)
+        K_lam = np.einsum("mai,mbj->mabij", g, g)
         keys = (patch[t][:, :, None] * count + patch[t][:, None, :]).ravel()
-        flat = blocks.reshape(-1, 36)
-        for pq in range(36):
-            K[:, pq // 6, pq % 6] += np.bincount(keys, flat[:, pq], count * count)
-    K = K.reshape(count, count, 6, 6).transpose(0, 2, 1, 3).reshape(6 * count, 6 * count)
+        Pe = Phi[t]                                               # (m, 4, 3, 6)
+        for part, Kab in zip(parts, (K_mu, K_lam)):
+            blocks = np.einsum("maip,mabij,mbjq->mabpq", Pe, W[:, None, None, None, None] * Kab, Pe,
+                               optimize=True).reshape(-1, 36)
+            for pq in range(36):
+                part[:, pq // 6, pq % 6] += np.bincount(keys, blocks[:, pq], count * count)
+    K_mu, K_lam = (p.reshape(count, count, 6, 6).transpose(0, 2, 1, 3).reshape(6 * count, 6 * count)
+                   for p in parts)
     Mb = np.zeros((count, 6, 6))
     np.add.at(Mb, patch, mass[:, None, None] * np.einsum("nip,niq->npq", Phi, Phi))
-    return scipy.linalg.block_diag(*Mb), 0.5 * (K + K.T)
+    return scipy.linalg.block_diag(*Mb), 0.5 * (K_mu + K_mu.T), 0.5 * (K_lam + K_lam.T)
 
 
 def inverse(A):
@@ -194,7 +196,8 @@ class Patches:
         write(self.start, model.padded(start, cap + 1, np.int32, pad=start[-1]))
         write(self.centre, C)
         write(self.spread_inverse, np.linalg.pinv(spread))
-        self.key = None
+        self.patch_body = model.vertex_body_np[members[start[:-1]]]   # the body of each patch
+        self.key, self.matrices = None, None
         self.reset()
 
     def reset(self):
@@ -202,33 +205,30 @@ class Patches:
         self.frame.from_numpy(np.tile(np.eye(3), (self.capacity, 1, 1)))
 
     def refresh(self, cM, cK):
-        """A_c^-1 for H = cM M + cK K0, when the materials, methods or dt changed."""
+        """A_c^-1 for H = cM M + cK K0, when the materials, methods or dt changed: the patches'
+        matrices once per scene, then a weighted sum and a dense inverse."""
         model = self.model
         key = (model.version, cM, cK)
         if key == self.key:
             return
-        if self.key is None or self.key[0] != model.version:
-            mu = np.concatenate([np.full(b.tets.stop - b.tets.start, b.material.E / (2 * (1 + b.material.nu)))
-                                 for b in model.bodies])
-            lam = np.concatenate([np.full(b.tets.stop - b.tets.start, b.material.E * b.material.nu
-                                          / ((1 + b.material.nu) * (1 - 2 * b.material.nu)))
-                                  for b in model.bodies])
-            self.mass_matrix, self.stiffness_matrix = coarse_matrices(
-                model.rest_positions_np, model.tets_np, mu, lam, model.mass_np,
-                model.free_np.astype(np.float64), self.patch_np)
-            rotates = np.array(self._rotating(), np.int32)
-            model.write(self.rotates, rotates)
-            self.reset()                              # linear patches: R_a = I
-        size = 6 * self.capacity
-        model.write(self.coarse_inverse, np.pad(inverse(cM * self.mass_matrix + cK * self.stiffness_matrix),
-                                                ((0, size - 6 * self.count[None]), (0, size - 6 * self.count[None]))))
+        size = 6 * (self.capacity - self.count[None])
+        model.write(self.coarse_inverse, np.pad(inverse(self.coarse_matrix(cM, cK)), ((0, size), (0, size))))
+        if self.key is None or self.key[0] != model.version:      # R_a follows corotational bodies only
+            model.write(self.rotates, np.array([model.bodies[b].method != "linear" for b in self.patch_body],
+                                               np.int32))
+            self.reset()
         self.key = key
 
-    def _rotating(self):
-        """(patches,) whether each patch's body is corotational (its R_a follows it)."""
-        first = np.zeros(self.count[None], np.int64)
-        first[self.patch_np[::-1]] = np.arange(len(self.patch_np))[::-1]
-        return [self.model.bodies[self.model.vertex_body_np[i]].method != "linear" for i in first]
+    def coarse_matrix(self, cM, cK):
+        """A_c = Q0^T (cM M + cK K0) Q0 with the bodies' current materials (float64)."""
+        model = self.model
+        if self.matrices is None:
+            self.matrices = coarse_matrices(model.rest_positions_np, model.tets_np, model.mass_np,
+                                            model.free_np.astype(np.float64), self.patch_np)
+        M, K_mu, K_lam = self.matrices
+        lame = [model.bodies[b].material.lame for b in self.patch_body]
+        mu, lam = (np.sqrt(np.repeat(values, 6)) for values in zip(*lame))   # a body's rows and columns
+        return cM * M + cK * (mu[:, None] * K_mu * mu[None, :] + lam[:, None] * K_lam * lam[None, :])
 
     @ti.kernel
     def update_frames(self, x: ti.template()):

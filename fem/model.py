@@ -168,9 +168,9 @@ class Model:
         material.check(f"body {info.name!r}")
         info.material = material
         s = info.tets
-        E, nu = material.E, material.nu
-        self._fill(self.mu, s.start, s.stop, E / (2 * (1 + nu)))
-        self._fill(self.lam, s.start, s.stop, E * nu / ((1 + nu) * (1 - 2 * nu)))
+        mu, lam = material.lame
+        self._fill(self.mu, s.start, s.stop, mu)
+        self._fill(self.lam, s.start, s.stop, lam)
         self.version += 1
 
     def set_method(self, body, method):

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import taichi as ti
 
+from fem.coarse import Patches
 from fem.measure import Measure
 from fem.model import Capacity, Model, State
 from fem.solver import ImplicitSolver, Switches
@@ -31,7 +32,7 @@ class Parts:
     model: Model
     solver: ImplicitSolver
     measure: Measure
-    states: tuple
+    state: State
 
 
 def borrow(owner, arrays, effects, settings):
@@ -60,14 +61,13 @@ def make(capacity, switches):
     model = Model(capacity)
     solver = ImplicitSolver(model, switches)
     made["parts"] += 1
-    return Parts(model, solver, Measure(model, solver.quaternions, switches),
-                 (State(capacity.vertices), State(capacity.vertices)))
+    return Parts(model, solver, Measure(model, solver.quaternions, switches), State(capacity.vertices))
 
 
 def compiled_kernels():
     """How many kernels Taichi has compiled (or loaded from its offline cache) in this
     process for the engine: one per kernel and per set of parts it ran on."""
-    classes = (Model, ImplicitSolver, Measure)
+    classes = (Model, ImplicitSolver, Measure, Patches)
     kernels = [f for c in classes for f in vars(c).values() if hasattr(f, "_primal")]
     return sum(len(k._primal.compiled_kernels) for k in kernels)
 

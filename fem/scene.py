@@ -30,6 +30,12 @@ class Material:
     nu: float
     density: float
 
+    @property
+    def lame(self):
+        """(mu, lam), the Lame parameters, Pa."""
+        E, nu = self.E, self.nu
+        return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+
     def check(self, where):
         if not self.E > 0:
             raise FemError(f"{where}: E must be > 0, got {self.E}")
