@@ -902,8 +902,8 @@ def run(args, plan=None):
                "scenes": scenes}
     if plan.stiff:
         print(f"bench: preconditioners on the stiff {plan.stiff}", file=sys.stderr)
-        results["stiff"] = {"name": plan.stiff, **STIFF,
-                            "preconditioners": compare_preconditioners(stiff_bar(plan.stiff), plan.preconditioner_steps)}
+        stiff = compare_preconditioners(stiff_bar(plan.stiff), plan.preconditioner_steps)
+        results["stiff"] = {"name": plan.stiff, **STIFF, "preconditioners": stiff}
     if plan.startup:
         print(f"bench: start-up and resting cost of {plan.startup}", file=sys.stderr)
         results["startup"] = startup.measure(plan.startup)

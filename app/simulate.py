@@ -82,6 +82,12 @@ class _nullfile:
         return False
 
 
+def preconditioner_note(sim):
+    """', two-level preconditioner' (PCG only)."""
+    name = sim.solver.preconditioner
+    return f", {name} preconditioner" if name else ""
+
+
 def summary(sim, rows):
     m = sim.model
     final = sim.stats()
@@ -89,7 +95,7 @@ def summary(sim, rows):
     iters = [r["solver_iters"] for r in rows] or [0]
     lines = [f"scene {sim.scene.name}: {m.n_tets} tets, {m.n_vertices} vertices, "
              f"{len(m.bodies)} bodies, dt {sim.settings.dt:g} s, solver {sim.settings.method} "
-             f"(tol {sim.settings.tolerance:g}), {fem.runtime.current().get('arch')} "
+             f"(tol {sim.settings.tolerance:g}{preconditioner_note(sim)}), {fem.runtime.current().get('arch')} "
              f"{fem.runtime.current().get('precision')}"]
     for i, b in enumerate(m.bodies):
         quality = mesh_quality(sim.scene.bodies[i].mesh)

@@ -492,7 +492,8 @@ class Viewer:
         g.text(f"ms/step: rotations {s.get('rotation_ms', 0):.1f}, solve {s.get('solve_ms', 0):.1f}")
         g.text(f"ms/frame rendering: {self.render_ms:.1f}")
         residual = s.get("residual")
-        g.text(f"{s.get('solver', self.sim.settings.method)}: {s.get('solver_iters', 0)} iterations, "
+        preconditioner = f" ({s['preconditioner']})" if s.get("preconditioner") else ""
+        g.text(f"{s.get('solver', self.sim.settings.method)}{preconditioner}: {s.get('solver_iters', 0)} iterations, "
                f"residual {residual if residual is not None else float('nan'):.1e}"
                + ("" if s.get("converged", True) else "  NOT CONVERGED"))
         for body, ratio in zip(self.sim.model.bodies, s["volume_ratio"]):

@@ -32,7 +32,7 @@ class Parts:
     model: Model
     solver: ImplicitSolver
     measure: Measure
-    state: State
+    states: tuple
 
 
 def borrow(owner, arrays, effects, settings):
@@ -61,7 +61,8 @@ def make(capacity, switches):
     model = Model(capacity)
     solver = ImplicitSolver(model, switches)
     made["parts"] += 1
-    return Parts(model, solver, Measure(model, solver.quaternions, switches), State(capacity.vertices))
+    return Parts(model, solver, Measure(model, solver.quaternions, switches),
+                 (State(capacity.vertices), State(capacity.vertices)))
 
 
 def compiled_kernels():

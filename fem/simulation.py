@@ -5,8 +5,8 @@
     x = sim.positions()          # (n, 3) numpy
     sim.stats()                  # + energies, volume ratios, inverted tets
 
-The step itself is `ImplicitSolver.step(state, dt)` (fem/solver.py); it writes the
-State back only when the result is finite, so a rejected step leaves it as it was.
+The step itself is `ImplicitSolver.step(state_in, state_out, dt)` (fem/solver.py);
+two States take turns, and a rejected step is simply not swapped in.
 """
 
 import sys
@@ -58,7 +58,7 @@ class Simulation:
         self.scene = scene                      # the description; never edited
         parts = pool.borrow(self, model_arrays(scene), scene.effects, settings)   # fields, kernels compiled
         self.model, self.solver, self.measure = parts.model, parts.solver, parts.measure
-        self.state = parts.state
+        self.state, self.spare = parts.states
         offsets = [b.vertices.start for b in self.model.bodies]
         self.impulses = []
         for k, imp in enumerate(scene.impulses):
@@ -132,12 +132,13 @@ class Simulation:
             _, ids, dv = self.pending.pop(0)
             self.apply_impulse(ids, dv)
         if any(self.awake):
-            info = self.solver.step(self.state, dt)
+            info = self.solver.step(self.state, self.spare, dt)
         else:                                   # everything sleeps: the step would change nothing
             info = StepInfo(True, True, 0.0, 0, 0, 0, 0, 0.0, 0.0)
         self.steps += 1
         if info.finite:
             if any(self.awake):
+                self.state, self.spare = self.spare, self.state
                 self.fall_asleep()
             self.t += dt
         elif not self.warned_nonfinite:

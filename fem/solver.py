@@ -230,11 +230,13 @@ class ImplicitSolver:
         """(cM, cK) of H = cM M + cK K: backward Euler with Rayleigh damping."""
         return 1 + dt * self.effects.alpha, dt * self.effects.beta + dt * dt
 
-    def step(self, state, dt):
-        """One backward Euler step of `state` (a State, updated in place); returns a StepInfo.
+    def step(self, state_in, state_out, dt):
+        """One backward Euler step from state_in into state_out; returns a StepInfo.
 
-        The step works on the solver's own copies (x0, v0: the start; x, v: the iterate) and
-        writes the result back only when it is finite: a rejected step leaves `state` as it was.
+        state_in is never written. When the result is not finite, state_out holds garbage
+        and the caller keeps state_in (a rejected step is a step not swapped in). The step
+        works on the solver's own copies (x0, v0: the start; x, v: the iterate), so every
+        kernel is compiled once, not once per State.
         """
         start = time.perf_counter()
         settings, model = self.settings, self.model
@@ -245,7 +247,7 @@ class ImplicitSolver:
         self.refresh(cM, cK, dt)
         self.dt[None] = dt
 
-        self.begin(state.x, state.v)
+        self.begin(state_in.x, state_in.v)
         rotation_ms = self.update_rotations(self.x, corotational)    # R(x_n)
         if newton:
             self.body_energy(self.x, self.v, self.energy_before, self.energy_size_before)     # x, v = x_n, v_n still
@@ -301,7 +303,7 @@ class ImplicitSolver:
         if self.has_ground:
             self.ground_reaction(cM, cK, newton)
         bad = self.check_finite(self.x, self.v)
-        if not math.isfinite(rho):                            # a NaN in the state: nothing to trust
+        if not math.isfinite(rho):                            # a NaN in state_in: nothing to trust
             bad = max(bad, 1)
         if bad == 0 and self.has_ground:
             self.ground_contact(self.x, self.v)
@@ -311,8 +313,7 @@ class ImplicitSolver:
         if bad == 0 and newton:
             self.body_energy(self.x, self.v, self.energy_after, self.energy_size_after)
             limited = self.limit_energy(self.x0, self.x, self.v)
-        if bad == 0:
-            self.copy_state(self.x, self.v, state.x, state.v)
+        self.copy_state(self.x, self.v, state_out.x, state_out.v)
         ti.sync()
         residual = tolerance * math.sqrt(max(rho, 0.0))
         wall_ms = 1e3 * (time.perf_counter() - start)

@@ -17,7 +17,8 @@ pytestmark = pytest.mark.usefixtures("f64")
 
 
 def bar(E=1e5, nu=0.3, pinned=None, method="corotational", **solver):
-    """A 2 x 1 x 1 m bar of 6^3 stretched cells (6 tets each; 343 vertices, 4 patches), spinning about y and twisting about x."""
+    """A 2 x 1 x 1 m bar of 6^3 stretched cells (6 tets each; 343 vertices, 4 patches), spinning
+    about y and twisting about x."""
     mesh = cube(cells=6, size=(1.0, 1.0, 1.0))
     mesh = type(mesh)(mesh.vertices * [2.0, 1.0, 1.0], mesh.tets, mesh.source)
     settings = dict(dt=0.02, tolerance=1e-8, max_iterations=1000, step="single", preconditioner="two-level")
