@@ -676,7 +676,7 @@ LIMITS = {
               "step's fixed work, about 10 ms: rotations 3.5, the gradient 2.3, the block-Jacobi build 1, "
               "the start of PCG 0.6, and a dozen small passes. A multigrid V-cycle would cut iterations "
               "further but costs two extra matrix products per iteration",
-    "stiff": "as box50k: iterations (about 16, from 58 with block Jacobi) and the step's fixed work",
+    "stiff": "as box50k: iterations (about 17, from 65 with block Jacobi) and the step's fixed work",
     "direct": "the matrix-free step itself (see box50k above); PARDISO's refactorisation on 2 cores is "
               "what a user would get, symbolic analysis reused",
     "memory": "the per-corner buffer of the gather (48 B/tet), Bm and Bm R^T (72 B/tet), quaternions and "
