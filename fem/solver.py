@@ -12,7 +12,8 @@ Newton iterations minimise E: each solves H d = -grad E with the positive defini
 
     H = (1 + dt alpha) M + (dt beta + dt^2) K(R),     R: rotations at the current iterate,
 
-by Jacobi-preconditioned CG (or weighted Jacobi iteration), never assembling H: the
+by preconditioned CG (block Jacobi, plus the rigid patches of fem/coarse.py on large
+meshes) or weighted Jacobi iteration, never assembling H: the
 stiffness product runs tet by tet and per-vertex sums gather over the model's adjacency
 (no atomics, so every run is the same bit for bit). A backtracking line search on E
 (Armijo) accepts only iterates that lower E, with E summed in float64 whatever the
@@ -933,8 +934,8 @@ class ImplicitSolver:
         """Up to `unroll` PCG iterations in one launch.
 
         Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
-        vertices: d, r, z and r.z, weighted r.r) with the scalar steps between them run
-        serially on the device. Once the weighted |r|^2 <= target or `cap` iterations are
+        vertices: d, r, z and r.z, weighted r.r; two-level: z and r.z in three more,
+        `two_level_precondition`) with the scalar steps between them run serially on the device. Once the weighted |r|^2 <= target or `cap` iterations are
         done, `active` drops to 0 and the remaining passes loop over nothing, so the
         iteration count is exact while Python launches one kernel per `unroll`.
         """
