@@ -28,6 +28,7 @@ from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
 from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
 from app.render import background, build_frame
 from app.software_renderer import SoftwareRenderer, to_window_layout
+from fem.scene import PRECONDITIONERS
 
 PANEL_WIDTH = 0.29              # of the window's width, on the right
 LABEL_SIZE = (0.14, 0.04)       # of the window: the title boxes naming the copies of --compare
@@ -45,6 +46,7 @@ ctrl+right drag or up/down    zoom
 f   frame the scene again      c   linear <-> corotational
 space  pause     n  one step   r   reset the scene
 v   start/stop video (mp4)     p   screenshot (png)
+l   PCG preconditioner: auto -> two-level -> block Jacobi
 scenes: the numbered list in the panel
 h   this help                  Esc quit"""
 
@@ -239,6 +241,8 @@ class Viewer:
                 self.reset()
             elif key == "c":
                 self.toggle_corotation()
+            elif key == "l":
+                self.next_preconditioner()
             elif key == "f":
                 self.reset_view()
             elif key == "h":
@@ -340,6 +344,13 @@ class Viewer:
         """Every body corotational, or (when they all are already) every body linear."""
         all_corotational = all(m == "corotational" for m in self.methods())
         self.set_methods(["linear" if all_corotational else "corotational"] * len(self.methods()))
+
+    def next_preconditioner(self):
+        """PCG's preconditioner, in turn: auto, two-level, block Jacobi (the engine reads it next step)."""
+        settings = self.sim.settings
+        settings.preconditioner = PRECONDITIONERS[(PRECONDITIONERS.index(settings.preconditioner) + 1)
+                                                  % len(PRECONDITIONERS)]
+        self.events.append({"type": "preconditioner", "preconditioner": settings.preconditioner})
 
     def set_methods(self, methods):
         for body, method in enumerate(methods):
@@ -534,6 +545,11 @@ class Viewer:
         settings, effects = self.sim.settings, self.sim.scene.effects
         if g.button(f"solver: {settings.method} (switch)"):
             settings.method = "jacobi" if settings.method == "pcg" else "pcg"
+        if settings.method == "pcg":
+            chosen = self.sim.solver.preconditioner
+            name = settings.preconditioner + (f" ({chosen})" if settings.preconditioner == "auto" else "")
+            if g.button(f"preconditioner: {name} (l)"):
+                self.next_preconditioner()
         exponent = g.slider_int("tolerance 1e-k", round(-np.log10(settings.tolerance)), 1, 10)
         settings.tolerance = 10.0 ** -exponent
         settings.max_iterations = g.slider_int("max iterations", settings.max_iterations, 1, 1000)

@@ -257,6 +257,8 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
         wait_for(lambda: frames_after_event(tmp_path, "click") >= 10, 60, "frames after the click")
         xdotool(env, "key", "--window", wid, "c")
         wait_for(lambda: frames_after_event(tmp_path, "methods") >= 10, 60, "frames after the toggle")
+        xdotool(env, "key", "--window", wid, "l")
+        wait_for(lambda: frames_after_event(tmp_path, "preconditioner") >= 5, 60, "frames after l")
         subprocess.run(["import", "-window", "root", str(tmp_path / "shot.png")], env=env,
                        check=True, timeout=30)
         log.flush()
@@ -289,6 +291,12 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
     assert toggles and toggles[-1]["methods"] == ["linear", "linear"]
     stepped = [r["corotational"] for r in rows if "corotational" in r]
     assert stepped[0] == [True, True] and stepped[-1] == [False, False]
+
+    switched = [(frame, e) for frame, e in events if e["type"] == "preconditioner"]
+    assert [e["preconditioner"] for _, e in switched] == ["two-level"]   # auto -> two-level
+    before = {r["preconditioner"] for r in rows if r["frame"] < switched[0][0] and "preconditioner" in r}
+    after = {r["preconditioner"] for r in rows if r["frame"] > switched[0][0] and "preconditioner" in r}
+    assert before == {"jacobi"} and after == {"two-level"}   # auto picked block Jacobi on these small boxes
 
 
 def test_view_without_a_display_is_one_clear_error():
