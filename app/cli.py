@@ -160,7 +160,8 @@ def build_parser(prog="main.py"):
     p.add_argument("--compare", action="store_true", help="left copy linear, right copy corotational")
     p.add_argument("--color", default="body", choices=["body", "volume", "strain"], help="colour mode")
     p.add_argument("--renderer", default="auto", choices=["auto", "ggui", "software"],
-                   help="GGUI offscreen (needs Vulkan) or the built-in software renderer")
+                   help="auto: the built-in software renderer (same picture, no Vulkan, steady memory); "
+                        "ggui: GGUI offscreen (needs Vulkan; Taichi 1.7 keeps ~250 kB per frame)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder / replace the video")
 
     p = sub.add_parser("view", help="interactive window: click to push, c toggles corotation")

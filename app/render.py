@@ -16,9 +16,6 @@ each body casts a contact shadow (its outline seen from straight above), so
 how high it is can be judged from the gap between the two.
 """
 
-import contextlib
-import os
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -231,44 +228,21 @@ def background(width: int, height: int) -> np.ndarray:
     return np.broadcast_to(column, (height, width, 3)).astype(np.float32)
 
 
-@contextlib.contextmanager
-def _silenced_stderr():
-    """Hide what native code writes to stderr (the Vulkan loader's error on a
-    failed probe), since the fallback message already says what happened."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 2)
-    try:
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
-
-
 def make_renderer(kind: str, width: int, height: int, smooth: bool = True) -> Renderer:
-    """A renderer of the given kind: "ggui", "software" or "auto".
+    """A renderer of the given kind: "software", "ggui" or "auto" (the software one).
 
-    "auto" tries GGUI's offscreen window and falls back to the software
-    renderer when no Vulkan driver works, saying so in one line on stderr.
+    "auto" takes the software renderer: it draws the same triangles and needs no Vulkan, on a
+    CPU it runs 2 to 3 times faster than GGUI over a software Vulkan driver, and it holds its
+    memory, where GGUI's offscreen 3D scene in Taichi 1.7 keeps about 250 kB per frame (4 GB
+    for a 10-minute video). `kind="ggui"` still draws with GGUI.
     Taichi must already be initialised (the engine does it).
     """
     # Imported here because both modules import this one.
     from app.ggui_renderer import GGUIRenderer
     from app.software_renderer import SoftwareRenderer
 
-    if kind == "software":
+    if kind in ("software", "auto"):
         return SoftwareRenderer(width, height, smooth)
     if kind == "ggui":
         return GGUIRenderer(width, height, smooth)
-    if kind != "auto":
-        raise ValueError(f"unknown renderer kind {kind!r}: use 'auto', 'ggui' or 'software'")
-    try:
-        with _silenced_stderr():
-            return GGUIRenderer(width, height, smooth)
-    # Whatever stops the window from opening (no driver, no GGUI in this Taichi build)
-    # means no GGUI on this machine.
-    except Exception as error:
-        print(f"GGUI unavailable ({error}); using the software renderer", file=sys.stderr)
-        return SoftwareRenderer(width, height, smooth)
+    raise ValueError(f"unknown renderer kind {kind!r}: use 'auto', 'ggui' or 'software'")
