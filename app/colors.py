@@ -83,8 +83,7 @@ def strain_energy_scale(bodies) -> float:
     """A round top for the strain energy scale (J/m^3): the energy density
     (mu + lam/2) eps^2 of a uniaxial strain eps = REFERENCE_STRAIN in the stiffest body."""
     def density(material):
-        E, nu = material.E, material.nu
-        mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+        mu, lam = material.lame
         return (mu + lam / 2) * REFERENCE_STRAIN**2
 
     return nice_step(max(density(b.material) for b in bodies))

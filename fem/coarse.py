@@ -75,12 +75,17 @@ def shape_gradients(X, T):
     return g, np.abs(np.linalg.det(Dm)) / 6
 
 
+def centres(X, patch, mass):
+    """(patches, 3) the patches' mass-weighted rest centres C_a."""
+    count = patch.max() + 1
+    weight = np.bincount(patch, mass, count)
+    return np.stack([np.bincount(patch, mass * X[:, d], count) for d in range(3)], axis=1) / weight[:, None]
+
+
 def rigid_modes(X, patch, mass, free):
     """Phi (n, 3, 6): u_i = Phi_i (t, w) = t + w x Y_i for free vertices, 0 for pinned ones;
     and the patches' mass-weighted rest centres C (patches, 3)."""
-    count = patch.max() + 1
-    weight = np.bincount(patch, mass, count)
-    C = np.stack([np.bincount(patch, mass * X[:, d], count) for d in range(3)], axis=1) / weight[:, None]
+    C = centres(X, patch, mass)
     Y = X - C[patch]
     Phi = np.zeros((len(X), 3, 6))
     Phi[:, :, :3] = np.eye(3)
@@ -184,7 +189,7 @@ class Patches:
         patch = patches(X, model.bodies, self.capacity)
         count = int(patch.max()) + 1
         self.patch_np, self.count[None] = patch, count
-        _, C = rigid_modes(X, patch, mass, np.ones(len(X)))
+        C = centres(X, patch, mass)
         Y = X - C[patch]
         spread = np.zeros((count, 3, 3))
         np.add.at(spread, patch, mass[:, None, None] * np.einsum("ni,nj->nij", Y, Y))
