@@ -171,6 +171,7 @@ class Simulation:
     def set_state(self, x, v):
         """Replace the positions x (m) and velocities v (m/s), (n, 3) numpy each."""
         self.state.load(np.asarray(x, np.float64), np.asarray(v, np.float64))
+        self.solver.forget_change()
         self.wake()
 
     def set_method(self, method, body=None):

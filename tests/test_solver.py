@@ -87,6 +87,35 @@ def test_pcg_reaches_tolerance_and_reports_iterations(f64):
     assert true_residual == pytest.approx(info["residual"], rel=1e-3, abs=1e-12)
 
 
+def test_the_first_guess_extrapolates_the_last_steps_change(f64):
+    """Each solve starts from v_n + (v_n - v_(n-1)). Falling freely, a body's velocity changes by
+    g dt every step: from the second step on that guess is the answer and PCG has nothing left
+    to do, where a start from v_n needs iterations. A new state (set_state) starts from v_n
+    alone; a rejected step leaves no NaN in the guess."""
+    g, dt = np.array([0.0, -9.81, 0.0]), 0.02
+    runs = {}
+    for forget in (False, True):
+        scene = spinning("corotational", omega=0.0, effects=Effects(gravity=tuple(g)),
+                         solver=SolverSettings(dt=dt, tolerance=1e-6, step="single"))
+        sim = fem.Simulation(scene)
+        x0, iterations = sim.positions(), []
+        for _ in range(10):
+            if forget:
+                sim.set_state(sim.positions(), sim.velocities())   # the same state, no memory
+            iterations.append(sim.step()["solver_iters"])
+        runs[forget] = sim, iterations
+    (sim, extrapolated), (_, from_vn) = runs[False], runs[True]
+    assert extrapolated[0] == from_vn[0] > 0             # the first step has no last step
+    # at most one iteration: the guess carries the last solve's own error (the tolerance)
+    assert max(extrapolated[1:]) <= 1 and min(from_vn[1:]) >= 10
+    fallen = dt * dt * g * 10 * 11 / 2                    # backward Euler: v_k = k dt g, x_n = x_0 + dt sum v_k
+    np.testing.assert_allclose(sim.positions(), x0 + fallen, atol=1e-6)       # 22 mm fallen
+
+    sim.apply_impulse([3], (np.nan, 0.0, 0.0))           # an impulse that breaks the step
+    assert not sim.step()["finite"]
+    assert np.isfinite(sim.solver.change.to_numpy()).all()
+
+
 def test_iteration_cap_is_reported_not_hidden(f64):
     scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-12, max_iterations=3,
                                                            step="single"))
