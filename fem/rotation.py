@@ -8,8 +8,9 @@ al. 2004 (the SVD's U V^T with the column of the smallest singular value flipped
 kernels there, `extract_rotations` and `svd_rotations`, so the SVD compiles only
 when needed): Newton steps on
 tr(R^T F) (Mueller et al. 2016 with the exact Hessian) from the previous step's
-rotation q; from a warm start two of them in f32, two or three in f64, about a
-sixth of the cost of an SVD (tools/rotation_cost.py). The iteration is trusted
+rotation q (the solver turns it on by the last step's turn first); from a warm
+start one or two of them in f32, two or three in f64, about a sixth of the cost
+of an SVD (tools/rotation_cost.py). The iteration is trusted
 only when it certifies its own answer; otherwise R comes from
 `polar_rotation(F)`, which needs no start: the SVD, polished by the same Newton
 steps. Either way the quaternion of the returned R is the next warm start.
@@ -112,13 +113,7 @@ def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
             break
         d = H.inverse() @ omega
         # q <- p q with p = (d/2, 1) / |.|: a turn by 2 atan(|d|/2) = |d| + O(|d|^3) about d
-        p = ti.Vector([0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 1.0])
-        q = ti.Vector([
-            p[3] * q[0] + p[0] * q[3] + p[1] * q[2] - p[2] * q[1],
-            p[3] * q[1] - p[0] * q[2] + p[1] * q[3] + p[2] * q[0],
-            p[3] * q[2] + p[0] * q[1] - p[1] * q[0] + p[2] * q[3],
-            p[3] * q[3] - p[0] * q[0] - p[1] * q[1] - p[2] * q[2],
-        ]).normalized()
+        q = quaternion_product(ti.Vector([0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 1.0]), q).normalized()
         d2 = d.norm_sqr()
         if H.trace() ** 3 / (8.0 * det_H) * d2 * ti.sqrt(d2) < ti.static(angle_tolerance()):
             converged = True
@@ -157,6 +152,23 @@ def quaternion_matrix(q):
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ])
+
+
+@ti.func
+def quaternion_product(p, q):
+    """p q: the rotation q followed by p (quaternions (x, y, z, w))."""
+    return ti.Vector([
+        p[3] * q[0] + p[0] * q[3] + p[1] * q[2] - p[2] * q[1],
+        p[3] * q[1] - p[0] * q[2] + p[1] * q[3] + p[2] * q[0],
+        p[3] * q[2] + p[0] * q[1] - p[1] * q[0] + p[2] * q[3],
+        p[3] * q[3] - p[0] * q[0] - p[1] * q[1] - p[2] * q[2],
+    ])
+
+
+@ti.func
+def conjugate(q):
+    """q^-1 of a unit quaternion q: the opposite turn."""
+    return ti.Vector([-q[0], -q[1], -q[2], q[3]])
 
 
 @ti.func

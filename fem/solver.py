@@ -41,7 +41,7 @@ import taichi as ti
 from fem.coarse import Patches
 from fem.elastic import (corner_forces, edge_matrix, energy_density, is_finite, linear_stress,
                          stiffness_block)
-from fem.rotation import newton_rotation, polar_rotation, quaternion_matrix, quaternion_of
+from fem.rotation import conjugate, newton_rotation, polar_rotation, quaternion_matrix, quaternion_of, quaternion_product
 from fem.runtime import epsilon, serial_loops
 
 ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
@@ -131,6 +131,7 @@ class ImplicitSolver:
         self.rotated_Bm = ti.Matrix.field(3, 3, float, m)     # Bm R^T at the current iterate
         self.damping_Bm = ti.Matrix.field(3, 3, float, m if self.has_stiffness_damping else 1)  # Bm R_n^T
         self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
+        self.turn = ti.Vector.field(3, float, m)              # (x, y, z) of R_n R_(n-1)^-1: the last step's turn
         self.twist = ti.field(float, m)                       # twist stiffness of the Newton matrix, Pa
         self.needs_svd = ti.field(ti.i8, m)                   # 1: the tet's R comes from the SVD
         self.corner = vec(4 * m)                              # per-corner values before the gather
@@ -205,6 +206,7 @@ class ImplicitSolver:
         velocity change says nothing about the next one."""
         self.change.fill(0)
         self.change_dt = 0.0                                  # s, the dt of the step that made `change`
+        self.extrapolation = 0.0                              # dt / change_dt: how far to extrapolate
 
     # ------------------------------------------------------------ the step
 
@@ -258,7 +260,7 @@ class ImplicitSolver:
         self.extrapolation = dt / self.change_dt if self.change_dt > 0 else 0.0   # of the last step's change
 
         self.begin(state_in.x, state_in.v)
-        rotation_ms = self.update_rotations(self.x, corotational)    # R(x_n)
+        rotation_ms = self.update_rotations(self.x, corotational, first=True)    # R(x_n)
         if newton:
             self.body_energy(self.x, self.v, self.energy_before, self.energy_size_before)     # x, v = x_n, v_n still
         self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
@@ -347,13 +349,14 @@ class ImplicitSolver:
         if self.settings.method == "jacobi":
             self.jacobi_weight(cM, cK)
 
-    def update_rotations(self, x, corotational):
-        """Rotations at positions x (when some body is corotational); returns the time spent (ms)."""
+    def update_rotations(self, x, corotational, first=False):
+        """Rotations at positions x (when some body is corotational); returns the time spent (ms).
+        first: at x_n, the step's first; its Newton steps start from the last step's turn, extrapolated."""
         if not corotational:
             return 0.0
         start = time.perf_counter()
         newton = int(self.settings.step == "newton" and not self.model.any_naive)   # twist stiffness
-        if self.extract_rotations(x, self.settings.rotations == "svd", newton) > 0:
+        if self.extract_rotations(x, self.settings.rotations == "svd", newton, int(first), self.extrapolation) > 0:
             self.svd_rotations(x, newton)
         self.rotated = True
         ti.sync()
@@ -427,6 +430,7 @@ class ImplicitSolver:
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
+            self.turn[e] = ti.Vector.zero(float, 3)
             self.rotated_Bm[e] = self.model.Bm[e]
             self.twist[e] = 0.0
 
@@ -441,11 +445,15 @@ class ImplicitSolver:
         return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]])
 
     @ti.kernel
-    def extract_rotations(self, x: ti.template(), svd: ti.template(), newton: ti.i32) -> ti.i32:
+    def extract_rotations(self, x: ti.template(), svd: ti.template(), newton: ti.i32, first: ti.i32,
+                          scale: float) -> ti.i32:
         """R = polar rotation of F for every corotational tet, kept as rotated_Bm = Bm R^T.
 
         svd=False: warm-started Newton steps from last time's R; a tet where they do not
         certify their answer (a start far off, an inverted tet) is left for `svd_rotations`.
+        first=1 (at x_n): they start from last time's R turned on by the last step's turn
+        (times `scale`, the ratio of the dts; 0: no last step) and record this step's turn.
+        On a turning body one step then certifies R where the last R alone needs two.
         svd=True: every corotational tet is left for it (the reference).
         newton=1 also sets each tet's twist stiffness (below); 0 leaves it 0 (the one-solve step).
         Returns how many tets were left. The SVD lives in its own kernel, compiled only when a
@@ -463,16 +471,32 @@ class ImplicitSolver:
                     left += 1
                 else:
                     F = self.edges(x, e) @ self.model.Bm[e]
-                    q, converged = newton_rotation(F, self.quaternions[e])
+                    last = self.quaternions[e]
+                    start = last
+                    if first:
+                        start = quaternion_product(self.turn_quaternion(e, scale), last).normalized()
+                    q, converged = newton_rotation(F, start)
                     self.set_rotation(e, F, quaternion_matrix(q), q, newton)
+                    if first:
+                        turn = quaternion_product(q, conjugate(last))
+                        if turn[3] < 0:                  # -p is the same turn: keep w >= 0
+                            turn = -turn
+                        self.turn[e] = ti.Vector([turn[0], turn[1], turn[2]]) * (scale > 0 and converged)
                     if not converged:
                         self.needs_svd[e] = 1
                         left += 1
             else:
+                self.turn[e] = ti.Vector.zero(float, 3)
                 self.twist[e] = 0.0
                 self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
                 self.rotated_Bm[e] = self.model.Bm[e]
         return left
+
+    @ti.func
+    def turn_quaternion(self, e, scale):
+        """The last step's turn of tet e, its angle times `scale`, as a unit quaternion."""
+        v = scale * self.turn[e]
+        return ti.Vector([v[0], v[1], v[2], ti.sqrt(ti.max(1.0 - v.norm_sqr(), 0.0))])
 
     @ti.kernel
     def svd_rotations(self, x: ti.template(), newton: ti.i32):

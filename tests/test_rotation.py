@@ -10,8 +10,11 @@ import pytest
 import taichi as ti
 from scipy.spatial.transform import Rotation
 
+from conftest import box_mesh, make_scene
+
 import fem
-from fem.rotation import newton_rotation, rotation_of
+from fem.rotation import newton_rotation, quaternion_product, rotation_of
+from fem.scene import Initial, Selection, SolverSettings
 
 # Largest angle to the exact rotation (rad) for F of condition number <= 100 (see condition()),
 # also the tolerance for orthonormality, det R = 1 and q against R. Measured: up to 4e-6 rad in
@@ -252,3 +255,70 @@ def test_degenerate_and_non_finite_F_give_a_proper_rotation(precision):
     assert np.abs(np.linalg.det(R[0]) - 1).max() < tol
     assert angle(quaternion_rotation(q[0]), R[0]).max() < tol
     assert angle(R[0, -1], degrees(40)) < tol                     # scale does not matter
+
+
+# ---------------------------------------------------------------- the solver's warm start
+
+def body_turn(before, after):
+    """The rotation (3x3) that best maps the points `before` onto `after` about their centres (Kabsch)."""
+    a, b = before - before.mean(axis=0), after - after.mean(axis=0)
+    U, _, Vt = np.linalg.svd(b.T @ a)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def test_the_solver_starts_its_rotations_from_the_last_steps_turn(precision):
+    """At x_n every tet's Newton steps start from R_(n-1) turned on by the last step's turn
+    R_(n-1) R_(n-2)^-1. On a stiff spinning body that turn is the body's, and in f32 one Newton
+    step from it certifies R where the last R alone needs two (f64's tolerance, 1e-12 rad,
+    takes two either way); R stays the exact polar rotation. A new state starts with no turn."""
+    scene = make_scene(box_mesh(3), "corotational", E=1e6, nu=0.3, density=100.0,
+                       solver=SolverSettings(dt=0.02, tolerance=1e-8, step="single"))
+    scene.initial = [Initial(Selection(None), "spin", (np.array([0.0, 1.0, 0.0]), 4.0))]
+    sim = fem.Simulation(scene)
+    states = [sim.positions()]
+    for _ in range(6):
+        sim.step()
+        states.append(sim.positions())
+    # the 6th step extracted R at states[5]: its turn is from states[4] to states[5]
+    axis_angle = Rotation.from_matrix(body_turn(states[4], states[5])).as_rotvec()
+    expected = np.sin(np.linalg.norm(axis_angle) / 2) * axis_angle / np.linalg.norm(axis_angle)
+    turn = sim.solver.turn.to_numpy()[:sim.model.n_tets]
+    assert np.linalg.norm(axis_angle) > 0.05               # about 4 rad/s x 0.02 s
+    np.testing.assert_allclose(turn, np.tile(expected, (len(turn), 1)), atol=1e-3 * np.linalg.norm(expected))
+
+    certified = ti.field(ti.i32, ())
+
+    @ti.kernel
+    def one_step_certifies(x: ti.template()):
+        solver, model = sim.solver, sim.model
+        for e in range(model.tet_count[None]):
+            F = solver.edges(x, e) @ model.Bm[e]
+            start = quaternion_product(solver.turn_quaternion(e, 1.0), solver.quaternions[e])
+            _, converged = newton_rotation(F, start.normalized(), 1)
+            certified[None] += converged
+
+    if precision == "f32":
+        one_step_certifies(sim.state.x)
+        assert certified[None] == sim.model.n_tets
+        certified[None] = 0
+        sim.solver.turn.fill(0.0)                          # the last R alone
+        one_step_certifies(sim.state.x)
+        assert certified[None] == 0
+
+    x = sim.positions()
+    F = deformation_gradients(sim, x)
+    U, _, Vt = np.linalg.svd(F)
+    np.testing.assert_allclose(sim.rotations(), U @ Vt, atol=TOLERANCE[precision])
+
+    sim.step()
+    assert sim.solver.turn.to_numpy().any()
+    sim.set_state(sim.positions(), sim.velocities())
+    sim.step()
+    assert not sim.solver.turn.to_numpy().any()
+
+
+def deformation_gradients(sim, x):
+    """(m, 3, 3) F = Ds Dm^-1 of every tet at positions x, in numpy."""
+    t = sim.model.tets_np
+    Ds = np.stack([x[t[:, k]] - x[t[:, 3]] for k in range(3)], axis=2)
+    return Ds @ sim.model.Bm.to_numpy()[:len(t)].astype(np.float64)
