@@ -194,7 +194,7 @@ class Simulation:
         (x None) a copy of the current state: every kernel then runs on the same fields."""
         work = self.solver
         if x is None:
-            work.copy_state(self.state.x, self.state.v, work.x, work.v)
+            work.begin(self.state.x, self.state.v)
         else:
             self.model.write(work.x, np.asarray(x, np.float64))
             work.v.fill(0.0)

@@ -576,13 +576,14 @@ class ImplicitSolver:
         return linear_stress(eps, self.model.mu[e], self.model.lam[e])
 
     @ti.kernel
-    def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float):
-        """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e."""
+    def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.template()):
+        """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e.
+        moving=False: v is 0 (the step's first iterate, no ground), so the damping term is too."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             W = self.model.rest_volume[e] * self.tet_awake(e)       # a sleeping body's tets add nothing
             self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
-            if ti.static(self.has_stiffness_damping):
+            if ti.static(self.has_stiffness_damping and moving):
                 B = self.damping_Bm[e]
                 dF = self.edges(v, e) @ B
                 eps = 0.5 * (dF + dF.transpose())
@@ -637,13 +638,6 @@ class ImplicitSolver:
         return self.gravity[None]
 
     @ti.kernel
-    def copy_state(self, x_from: ti.template(), v_from: ti.template(), x_to: ti.template(),
-                   v_to: ti.template()):
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            x_to[i], v_to[i] = x_from[i], v_from[i]
-
-    @ti.kernel
     def finish(self, x: ti.template(), v: ti.template(), good: ti.i32):
         """state_out <- the iterate; change <- v - v_n for the next step's first guess
         (0 after a step whose result is not finite)."""
@@ -657,7 +651,7 @@ class ImplicitSolver:
 
     @ti.kernel
     def begin(self, x: ti.template(), v: ti.template()):
-        """x0, v0 <- the step's start; the iterate x, v too."""
+        """x0, v0 <- the step's start; the iterate x, v too (also how checks copy a state in)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             self.x0[i], self.v0[i] = x[i], v[i]
@@ -727,7 +721,7 @@ class ImplicitSolver:
 
     def gradient(self, v0, x, v, dt, tolerance, first):
         """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1)."""
-        self.gradient_corners(x, v, dt)
+        self.gradient_corners(x, v, dt, not first or self.has_ground)   # first: v = 0 off the ground
         self.gradient_vertices(v0, v, dt, first)
         return self.gradient_norm(tolerance, first)
 
