@@ -1,5 +1,7 @@
 """The implicit step: conservation, dissipation, convergence, and effects that cost nothing when off."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import taichi as ti
@@ -88,7 +90,7 @@ def test_pcg_reaches_tolerance_and_reports_iterations(f64):
 
 
 def test_the_first_guess_extrapolates_the_last_steps_change(f64):
-    """Each solve starts from v_n + (v_n - v_(n-1)). Falling freely, a body's velocity changes by
+    """Each solve starts from v_n + (dt / dt_prev)(v_n - v_(n-1)). Falling freely, a body's velocity changes by
     g dt every step: from the second step on that guess is the answer and PCG has nothing left
     to do, where a start from v_n needs iterations. A new state (set_state) starts from v_n
     alone; a rejected step leaves no NaN in the guess."""
@@ -110,6 +112,9 @@ def test_the_first_guess_extrapolates_the_last_steps_change(f64):
     assert max(extrapolated[1:]) <= 1 and min(from_vn[1:]) >= 10
     fallen = dt * dt * g * 10 * 11 / 2                    # backward Euler: v_k = k dt g, x_n = x_0 + dt sum v_k
     np.testing.assert_allclose(sim.positions(), x0 + fallen, atol=1e-6)       # 22 mm fallen
+
+    sim.settings = replace(sim.settings, dt=dt / 2)      # the change scales with dt: g dt / 2 now
+    assert sim.step()["solver_iters"] <= 1
 
     sim.apply_impulse([3], (np.nan, 0.0, 0.0))           # an impulse that breaks the step
     assert not sim.step()["finite"]
