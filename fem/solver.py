@@ -50,6 +50,7 @@ FORCING = 0.1            # inexact Newton: CG reduces the gradient by this facto
 ROUNDOFF = 30.0          # per-body floor of the stopping test, in units of the precision's epsilon
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
 TWO_LEVEL_VERTICES = 2000   # "auto": below, block Jacobi is as fast (its iterations cost less; measured)
+BEFORE, AFTER = 0, 1     # rows of ImplicitSolver.body_total
 NAIVE = 2                # Model.corotational of a tet of the naive variant (fem.scene.METHODS)
 
 
@@ -152,10 +153,8 @@ class ImplicitSolver:
         self.body_change = ti.field(ti.f64, nb)               # |a d_b|_M^2 of the last Newton iteration, J
         self.body_momentum = ti.field(ti.f64, nb)             # |v_b|_M^2, J
         self.body_speed_floor = ti.field(ti.f64, nb)          # round-off floor of |v_b|_M^2, J
-        self.energy_before = ti.field(ti.f64, nb)             # total energy of each body before the step, J
-        self.energy_after = ti.field(ti.f64, nb)              # ... and after it, J
-        self.energy_size_before = ti.field(ti.f64, nb)        # sum of |terms| of energy_before, J
-        self.energy_size_after = ti.field(ti.f64, nb)         # ... of energy_after, J
+        self.body_total = ti.field(ti.f64, (2, nb))           # total energy of each body [BEFORE] and [AFTER] the step, J
+        self.body_total_size = ti.field(ti.f64, (2, nb))      # sum of the sizes of its terms, J
         self.body_mass = ti.field(ti.f64, nb)                 # kg (free vertices only)
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)   # kg m/s
         self.body_pinned = ti.field(ti.i32, nb)               # 1: the body has pinned vertices
@@ -262,7 +261,7 @@ class ImplicitSolver:
         self.begin(state_in.x, state_in.v)
         rotation_ms = self.update_rotations(self.x, corotational, first=True)    # R(x_n)
         if newton:
-            self.body_energy(self.x, self.v, self.energy_before, self.energy_size_before)     # x, v = x_n, v_n still
+            self.body_energy(self.x, self.v, BEFORE)          # x, v = x_n, v_n still
         self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
         if self.has_stiffness_damping:
             self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
@@ -323,7 +322,7 @@ class ImplicitSolver:
         if bad == 0 and not self.has_ground:
             self.restore_momentum(self.v0, self.x0, self.x, self.v, dt)
         if bad == 0 and newton:
-            self.body_energy(self.x, self.v, self.energy_after, self.energy_size_after)
+            self.body_energy(self.x, self.v, AFTER)
             limited = self.limit_energy(self.x0, self.x, self.v)
         self.finish(state_out.x, state_out.v, int(bad == 0))
         self.change_dt = dt
@@ -364,7 +363,7 @@ class ImplicitSolver:
 
     def solve(self, v0, cM, cK, target, warm):
         """H d = -grad E until the weighted residual sum_b |r_b|^2 w_b <= target; returns iterations."""
-        self.start_direction(v0, warm, self.extrapolation)
+        self.start_direction(v0, int(warm), self.extrapolation)
         if self.settings.method == "pcg":
             two_level = self.two_level
             self.stiffness_product(self.solution)
@@ -576,14 +575,14 @@ class ImplicitSolver:
         return linear_stress(eps, self.model.mu[e], self.model.lam[e])
 
     @ti.kernel
-    def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.template()):
+    def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
         """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e.
-        moving=False: v is 0 (the step's first iterate, no ground), so the damping term is too."""
+        moving=0: v is 0 (the step's first iterate, no ground), so the damping term is too."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             W = self.model.rest_volume[e] * self.tet_awake(e)       # a sleeping body's tets add nothing
             self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
-            if ti.static(self.has_stiffness_damping and moving):
+            if ti.static(self.has_stiffness_damping) and moving:
                 B = self.damping_Bm[e]
                 dF = self.edges(v, e) @ B
                 eps = 0.5 * (dF + dF.transpose())
@@ -677,12 +676,12 @@ class ImplicitSolver:
             x[i] = x0[i] + dt * u
 
     @ti.kernel
-    def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, first: ti.template()):
+    def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, first: ti.i32):
         """rhs <- -grad E = M v_n + dt M g - (1 + dt alpha) M v - (gathered tet terms), and the
         per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2."""
         for b in range(self.model.body_count[None]):
             self.body_gradient[b] = 0.0
-            if ti.static(first):
+            if first:
                 self.body_scale[b], self.body_momentum[b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
@@ -695,14 +694,14 @@ class ImplicitSolver:
             self.rhs[i] = rhs
             b = self.model.vertex_body[i]
             self.body_gradient[b] += ti.cast(self.filtered(i, rhs).norm_sqr(), ti.f64)
-            if ti.static(first):   # |M v_n|^2 + |dt f|^2 + |dt M g|^2: not |rhs|^2, which is ~0 at rest
+            if first:   # |M v_n|^2 + |dt f|^2 + |dt M g|^2: not |rhs|^2, which is ~0 at rest
                 momentum = ti.cast(self.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
                 self.body_momentum[b] += momentum
                 self.body_scale[b] += momentum + ti.cast(self.filtered(i, tets).norm_sqr()
                                                          + self.filtered(i, g).norm_sqr(), ti.f64)
 
     @ti.kernel
-    def gradient_norm(self, tolerance: ti.f64, first: ti.template()) -> ti.f64:
+    def gradient_norm(self, tolerance: ti.f64, first: ti.i32) -> ti.f64:
         """sum_b |grad_b|^2 / (tol^2 s_b^2 + floor_b): <= 1 exactly when every body has
         converged, relative to its own scale s_b or below its round-off floor.
         On the first call a body whose momentum |M v_n| is above the floor counts as not
@@ -711,7 +710,7 @@ class ImplicitSolver:
         rho = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            if ti.static(first):
+            if first:
                 self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]
                                                      + self.body_floor[b]), float)
                 if self.body_momentum[b] > self.body_floor[b]:
@@ -721,9 +720,9 @@ class ImplicitSolver:
 
     def gradient(self, v0, x, v, dt, tolerance, first):
         """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1)."""
-        self.gradient_corners(x, v, dt, not first or self.has_ground)   # first: v = 0 off the ground
-        self.gradient_vertices(v0, v, dt, first)
-        return self.gradient_norm(tolerance, first)
+        self.gradient_corners(x, v, dt, int(not first or self.has_ground))   # first: v = 0 off the ground
+        self.gradient_vertices(v0, v, dt, int(first))
+        return self.gradient_norm(tolerance, int(first))
 
     @ti.kernel
     def energy_vertices(self, v0: ti.template(), v: ti.template(), dt: float) -> ti.f64:
@@ -770,27 +769,27 @@ class ImplicitSolver:
     # StepInfo counts both.
 
     @ti.kernel
-    def body_energy(self, x: ti.template(), v: ti.template(), out: ti.template(), size: ti.template()):
-        """out[b] <- kinetic + elastic + gravitational energy of body b (J, float64),
-        elastic with the rotations extracted at x; size[b] <- the sum of the sizes of its
-        terms (J), the scale of its round-off."""
+    def body_energy(self, x: ti.template(), v: ti.template(), when: ti.i32):
+        """body_total[when, b] <- kinetic + elastic + gravitational energy of body b (J, float64),
+        elastic with the rotations extracted at x; body_total_size[when, b] <- the sum of the
+        sizes of its terms (J), the scale of its round-off. when: BEFORE or AFTER the step."""
         for b in range(self.model.body_count[None]):
-            out[b], size[b] = 0.0, 0.0
+            self.body_total[when, b], self.body_total_size[when, b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
             psi = ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
                 F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
-            out[self.model.tet_body[e]] += psi
-            size[self.model.tet_body[e]] += psi
+            self.body_total[when, self.model.tet_body[e]] += psi
+            self.body_total_size[when, self.model.tet_body[e]] += psi
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
             kinetic, potential = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr(), ti.cast(0.0, ti.f64)
             if ti.static(self.has_gravity):
                 potential = -m * ti.cast(self.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
-            out[self.model.vertex_body[i]] += kinetic + potential
-            size[self.model.vertex_body[i]] += kinetic + ti.abs(potential)
+            self.body_total[when, self.model.vertex_body[i]] += kinetic + potential
+            self.body_total_size[when, self.model.vertex_body[i]] += kinetic + ti.abs(potential)
 
     @ti.kernel
     def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template()) -> ti.i32:
@@ -817,8 +816,9 @@ class ImplicitSolver:
         limited = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            rise = self.energy_after[b] - self.energy_before[b]
-            noise = ti.static(ROUNDOFF * epsilon()) * ti.max(self.energy_size_before[b], self.energy_size_after[b])
+            rise = self.body_total[AFTER, b] - self.body_total[BEFORE, b]
+            noise = ti.static(ROUNDOFF * epsilon()) * ti.max(self.body_total_size[BEFORE, b],
+                                                               self.body_total_size[AFTER, b])
             scale = ti.cast(1.0, ti.f64)
             if rise > noise:                     # a rise within round-off is no rise
                 limited += 1
@@ -897,7 +897,7 @@ class ImplicitSolver:
             self.velocity[i] = v[i]
 
     @ti.kernel
-    def start_direction(self, v0: ti.template(), warm: ti.template(), scale: float):
+    def start_direction(self, v0: ti.template(), warm: ti.i32, scale: float):
         """d <- filtered v_n + scale (v_n - v_(n-1)) - v, or 0. On the first Newton iteration
         the velocity extrapolated with the last step's change (scaled by the ratio of the dts)
         is a good guess: on a turning body it takes a quarter to a third of PCG's iterations
@@ -905,7 +905,7 @@ class ImplicitSolver:
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             d = ti.Vector.zero(float, 3)
-            if ti.static(warm):
+            if warm:
                 d = self.filtered(i, v0[i] + scale * self.change[i] - self.velocity[i])
             self.solution[i] = d
 
