@@ -51,6 +51,7 @@ ROUNDOFF = 30.0          # per-body floor of the stopping test, in units of the 
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
 TWO_LEVEL_VERTICES = 2000   # "auto": below, block Jacobi is as fast (its iterations cost less; measured)
 BEFORE, AFTER = 0, 1     # rows of ImplicitSolver.body_total
+TET_CHUNK = 512          # tets a thread sums per body before adding to a per-body total
 NAIVE = 2                # Model.corotational of a tet of the naive variant (fem.scene.METHODS)
 
 
@@ -775,13 +776,24 @@ class ImplicitSolver:
         sizes of its terms (J), the scale of its round-off. when: BEFORE or AFTER the step."""
         for b in range(self.model.body_count[None]):
             self.body_total[when, b], self.body_total_size[when, b] = 0.0, 0.0
+        # A body's tets are contiguous: each chunk of tets sums into a running total and adds it
+        # to body_total once per body it meets, not once per tet (threads would fight over it).
+        n = self.model.tet_count[None]
         ti.loop_config(serialize=self.serial_tets)
-        for e in range(self.model.tet_count[None]):
-            F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
-            psi = ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
-                F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
-            self.body_total[when, self.model.tet_body[e]] += psi
-            self.body_total_size[when, self.model.tet_body[e]] += psi
+        for c in range((n + TET_CHUNK - 1) // TET_CHUNK):
+            body, elastic = -1, ti.cast(0.0, ti.f64)
+            for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
+                if self.model.tet_body[e] != body:
+                    if body >= 0:
+                        self.body_total[when, body] += elastic
+                        self.body_total_size[when, body] += elastic
+                    body, elastic = self.model.tet_body[e], 0.0
+                F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
+                elastic += ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
+                    F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
+            if body >= 0:
+                self.body_total[when, body] += elastic
+                self.body_total_size[when, body] += elastic
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
