@@ -51,7 +51,7 @@ ROUNDOFF = 30.0          # per-body floor of the stopping test, in units of the 
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
 TWO_LEVEL_VERTICES = 2000   # "auto": below, block Jacobi is as fast (its iterations cost less; measured)
 BEFORE, AFTER = 0, 1     # rows of ImplicitSolver.body_total
-TET_CHUNK = 512          # tets a thread sums per body before adding to a per-body total
+TET_CHUNK = 16           # tets a thread sums per body before adding to a per-body total
 NAIVE = 2                # Model.corotational of a tet of the naive variant (fem.scene.METHODS)
 
 
@@ -114,7 +114,8 @@ class Switches:
 class ImplicitSolver:
     """Work fields and kernels of the implicit step for one model; `step` is the whole step.
 
-    Made once per Model and `Switches` (fem/pool.py), then `load`ed for each scene.
+    Made once per Model and `Switches` (fem/pool.py), then `load`ed for each scene. Loops over
+    bodies run on one thread: for a few bodies a second thread costs more than it saves.
     """
 
     def __init__(self, model, switches):
@@ -154,6 +155,12 @@ class ImplicitSolver:
         self.body_change = ti.field(ti.f64, nb)               # |a d_b|_M^2 of the last Newton iteration, J
         self.body_momentum = ti.field(ti.f64, nb)             # |v_b|_M^2, J
         self.body_speed_floor = ti.field(ti.f64, nb)          # round-off floor of |v_b|_M^2, J
+        self.body_E = ti.field(ti.f64, nb)                    # E_b at the last trial iterate, J
+        self.body_E_accepted = ti.field(ti.f64, nb)           # E_b at the accepted iterate, J
+        self.body_resolution = ti.field(ti.f64, nb)           # J: changes of E_b below this are round-off
+        self.body_slope = ti.field(ti.f64, nb)                # grad_b E . d_b, J (< 0: d descends for body b)
+        self.body_step = ti.field(float, nb)                  # a_b: body b's step along d in the line search
+        self.searching = ti.field(ti.i32, nb)                 # 1: body b has not found its decrease yet
         self.body_total = ti.field(ti.f64, (2, nb))           # total energy of each body [BEFORE] and [AFTER] the step, J
         self.body_total_size = ti.field(ti.f64, (2, nb))      # sum of the sizes of its terms, J
         self.body_mass = ti.field(ti.f64, nb)                 # kg (free vertices only)
@@ -273,8 +280,9 @@ class ImplicitSolver:
             self.prepare_patches(cM, cK, corotational)
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())   # none below round-off
         rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, True)
-        energy = self.energy(self.v0, self.x, self.v, dt) if newton else 0.0
-        resolution = ROUNDOFF * epsilon() * abs(energy)       # J: smaller changes of E are noise
+        if newton:
+            self.energy(self.v0, self.x, self.v, dt)          # E_b of every body at the first iterate
+            self.accept(self.v, 1)
 
         newton_iters = solver_iters = halvings = 0
         settled = False
@@ -284,29 +292,29 @@ class ImplicitSolver:
             newton_iters += 1
             if not newton:
                 rho = float(self.rr[None])                    # the linear solve's own residual
-                self.try_step(self.x0, self.x, self.v, 1.0, dt)
+                self.try_step(self.x0, self.x, self.v, dt, 0)
                 break
-            slope = self.slope()                              # grad E . d (J), < 0 for a descent direction
-            if -slope <= resolution:                          # the Newton decrement: nothing left to gain
+            # A line search per body: bodies never interact, so E is a sum of their E_b, and
+            # each body halves its own step until its own E_b falls enough (Armijo).
+            if self.start_search() == 0:                      # no body's decrement above round-off
                 settled = True
                 break
-            a, accepted = 1.0, False
             for _ in range(MAX_HALVINGS + 1):
-                self.try_step(self.x0, self.x, self.v, a, dt)
+                self.try_step(self.x0, self.x, self.v, dt, 1)
                 rotation_ms += self.update_rotations(self.x, True)
-                trial = self.energy(self.v0, self.x, self.v, dt)
-                if trial <= energy + ARMIJO * a * slope:
-                    accepted = True
+                self.energy(self.v0, self.x, self.v, dt)
+                if self.armijo() == 0:
                     break
-                a *= 0.5
                 halvings += 1
-            if not accepted:                                  # no decrease left at this precision
-                self.try_step(self.x0, self.x, self.v, 0.0, dt)
+            else:                                             # some found no decrease at this precision
+                moved = self.give_up()                        # they keep the last iterate
+                self.try_step(self.x0, self.x, self.v, dt, 1)
                 rotation_ms += self.update_rotations(self.x, True)
-                break
-            energy = trial
-            self.accept(self.v)
-            change = self.velocity_change(a, settings.newton_tolerance)
+                if moved == 0:
+                    break
+                self.energy(self.v0, self.x, self.v, dt)
+            self.accept(self.v, 0)
+            change = self.velocity_change(settings.newton_tolerance)
             rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, False)
             if change <= 1.0:                                 # every body's velocity has settled
                 settled = True
@@ -593,19 +601,27 @@ class ImplicitSolver:
                     self.corner[4 * e + k] += f[k]
 
     @ti.kernel
-    def energy_tets(self, x: ti.template(), v: ti.template(), dt: float) -> ti.f64:
-        """Psi(x) + dt beta/2 v^T K_n v, summed in float64 (J)."""
-        total = ti.cast(0.0, ti.f64)
+    def energy_tets(self, x: ti.template(), v: ti.template(), dt: float):
+        """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K_n v_b, summed in float64 (J), a chunk of
+        tets at a time (as in body_energy)."""
+        n = self.model.tet_count[None]
         ti.loop_config(serialize=self.serial_tets)
-        for e in range(self.model.tet_count[None]):
-            W = ti.cast(self.model.rest_volume[e] * self.tet_awake(e), ti.f64)
-            mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
-            F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
-            total += W * energy_density(F, mu, lam, 1.0)
-            if ti.static(self.has_stiffness_damping):
-                dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm[e], ti.f64)
-                total += ti.cast(dt * self.stiffness_damping[None], ti.f64) * W * energy_density(dF, mu, lam, 0.0)
-        return total
+        for c in range((n + TET_CHUNK - 1) // TET_CHUNK):
+            body, total = -1, ti.cast(0.0, ti.f64)
+            for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
+                if self.model.tet_body[e] != body:
+                    if body >= 0:
+                        self.body_E[body] += total
+                    body, total = self.model.tet_body[e], 0.0
+                W = ti.cast(self.model.rest_volume[e] * self.tet_awake(e), ti.f64)
+                mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
+                F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
+                total += W * energy_density(F, mu, lam, 1.0)
+                if ti.static(self.has_stiffness_damping):
+                    dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm[e], ti.f64)
+                    total += ti.cast(dt * self.stiffness_damping[None], ti.f64) * W * energy_density(dF, mu, lam, 0.0)
+            if body >= 0:
+                self.body_E[body] += total
 
     # ------------------------------------------------------------ per-vertex kernels
 
@@ -680,6 +696,7 @@ class ImplicitSolver:
     def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, first: ti.i32):
         """rhs <- -grad E = M v_n + dt M g - (1 + dt alpha) M v - (gathered tet terms), and the
         per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2."""
+        ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_gradient[b] = 0.0
             if first:
@@ -726,33 +743,38 @@ class ImplicitSolver:
         return self.gradient_norm(tolerance, int(first))
 
     @ti.kernel
-    def energy_vertices(self, v0: ti.template(), v: ti.template(), dt: float) -> ti.f64:
-        """1/2 |v - v_n|_M^2 + dt alpha/2 |v|_M^2 - dt v^T M g, summed in float64 (J)."""
-        total = ti.cast(0.0, ti.f64)
+    def energy_vertices(self, v0: ti.template(), v: ti.template(), dt: float):
+        """body_E[b] <- 1/2 |v_b - v_n|_M^2 + dt alpha/2 |v_b|_M^2 - dt v_b^T M g, in float64 (J)."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_E[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
             u, u0 = ti.cast(v[i], ti.f64), ti.cast(v0[i], ti.f64)
-            total += 0.5 * m * ((u - u0).norm_sqr() + dt * self.mass_damping[None] * u.norm_sqr())
+            e = 0.5 * m * ((u - u0).norm_sqr() + dt * self.mass_damping[None] * u.norm_sqr())
             if ti.static(self.has_gravity):
-                total -= dt * m * u.dot(ti.cast(self.gravity_vector(), ti.f64))
-        return total
+                e -= dt * m * u.dot(ti.cast(self.gravity_vector(), ti.f64))
+            self.body_E[self.model.vertex_body[i]] += e
 
     def energy(self, v0, x, v, dt):
-        """E(v) at x = x_n + dt v (J, float64), with the rotations at x already extracted."""
-        return self.energy_vertices(v0, v, dt) + self.energy_tets(x, v, dt)
+        """E_b(v) of every body at x = x_n + dt v into body_E (J, float64), with the rotations at
+        x already extracted. E = sum_b E_b is what a Newton iteration minimises."""
+        self.energy_vertices(v0, v, dt)
+        self.energy_tets(x, v, dt)
 
     @ti.kernel
-    def velocity_change(self, a: float, tolerance: ti.f64) -> ti.f64:
-        """sum_b |a d_b|_M^2 / (tol^2 |v_b|_M^2 + floor_b): <= 1 exactly when no body's velocity
+    def velocity_change(self, tolerance: ti.f64) -> ti.f64:
+        """sum_b |a_b d_b|_M^2 / (tol^2 |v_b|_M^2 + floor_b): <= 1 exactly when no body's velocity
         moved by more than tol of its size (or by round-off) in the last Newton iteration."""
+        ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_change[b], self.body_momentum[b] = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
             b = self.model.vertex_body[i]
-            self.body_change[b] += m * ti.cast(a * self.solution[i], ti.f64).norm_sqr()
+            self.body_change[b] += m * ti.cast(self.body_step[b] * self.solution[i], ti.f64).norm_sqr()
             self.body_momentum[b] += m * ti.cast(self.velocity[i], ti.f64).norm_sqr()
         change = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
@@ -774,6 +796,7 @@ class ImplicitSolver:
         """body_total[when, b] <- kinetic + elastic + gravitational energy of body b (J, float64),
         elastic with the rotations extracted at x; body_total_size[when, b] <- the sum of the
         sizes of its terms (J), the scale of its round-off. when: BEFORE or AFTER the step."""
+        ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_total[when, b], self.body_total_size[when, b] = 0.0, 0.0
         # A body's tets are contiguous: each chunk of tets sums into a running total and adds it
@@ -809,6 +832,7 @@ class ImplicitSolver:
         its kinetic energy falls by the rise. Where the rise exceeds that kinetic energy (a body
         nearly at rest in a non-convex state), the body stays where it was, at rest.
         Returns how many bodies were limited."""
+        ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_mass[b] = 0.0
             self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
@@ -856,6 +880,7 @@ class ImplicitSolver:
         """Shift each unpinned body's velocity uniformly so that its momentum is exactly backward
         Euler's, (1 + dt alpha) sum m v = sum m v_n + dt M g: an inexact Newton solve leaves a
         residual whose sum is not zero, and internal forces can never change momentum."""
+        ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_mass[b] = 0.0
             self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
@@ -885,25 +910,73 @@ class ImplicitSolver:
         return c
 
     @ti.kernel
-    def slope(self) -> ti.f64:
-        """grad E . d (J): negative when the direction d descends."""
-        total = ti.cast(0.0, ti.f64)
+    def start_search(self) -> ti.i32:
+        """body_slope[b] <- grad_b E . d_b (J, < 0 where d descends). A body whose decrease
+        -slope_b is above the round-off of its E_b searches, from a_b = 1; the others have
+        nothing left to gain (a_b = 0). Returns how many bodies search."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_slope[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            total -= ti.cast(self.filtered(i, self.rhs[i]).dot(self.solution[i]), ti.f64)
-        return total
+            self.body_slope[self.model.vertex_body[i]] -= ti.cast(self.filtered(i, self.rhs[i]).dot(self.solution[i]), ti.f64)
+        count = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.searching[b] = int(-self.body_slope[b] > self.body_resolution[b])
+            self.body_step[b] = self.searching[b]
+            count += self.searching[b]
+        return count
 
     @ti.kernel
-    def try_step(self, x0: ti.template(), x: ti.template(), v: ti.template(), a: float, dt: float):
-        """v <- velocity + a d, x <- x_n + dt v: a point on the Newton direction."""
+    def armijo(self) -> ti.i32:
+        """A searching body whose E_b fell by at least ARMIJO a_b |slope_b| is done; the others
+        halve a_b. Returns how many still search."""
+        left = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if self.searching[b]:
+                if self.body_E[b] <= self.body_E_accepted[b] + ARMIJO * self.body_step[b] * self.body_slope[b]:
+                    self.searching[b] = 0
+                else:
+                    self.body_step[b] *= 0.5
+                    left += 1
+        return left
+
+    @ti.kernel
+    def give_up(self) -> ti.i32:
+        """Bodies that found no decrease (at this precision) stay where they are: a_b = 0.
+        Returns how many bodies still move."""
+        moving = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if self.searching[b]:
+                self.body_step[b] = 0.0
+            moving += int(self.body_step[b] > 0)
+        return moving
+
+    @ti.kernel
+    def try_step(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt: float, each: ti.i32):
+        """v <- velocity + a d, x <- x_n + dt v: a point on the Newton direction, a = 1 for
+        every body, or (each = 1) each body's own step a_b."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
+            a = 1.0
+            if each:
+                a = self.body_step[self.model.vertex_body[i]]
             u = self.velocity[i] + a * self.solution[i]
             v[i] = u
             x[i] = x0[i] + dt * u
 
     @ti.kernel
-    def accept(self, v: ti.template()):
+    def accept(self, v: ti.template(), first: ti.i32):
+        """The iterate v (and its energies E_b) becomes the accepted one; on the step's first
+        iterate E_b also sets its resolution, the round-off of a float64 sum of that size."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_E_accepted[b] = self.body_E[b]
+            if first:
+                self.body_resolution[b] = ti.static(ROUNDOFF * epsilon()) * ti.abs(self.body_E[b])
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             self.velocity[i] = v[i]
@@ -1061,6 +1134,7 @@ class ImplicitSolver:
     @ti.kernel
     def body_speeds(self, v: ti.template()):
         """body_speed[b] <- the largest |v_i|^2 over body b's vertices, (m/s)^2."""
+        ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_speed[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)

@@ -53,15 +53,16 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
     paths, last = [], []        # per step: E of the start iterate, then of each accepted iterate
 
     def logged_energy(*args):
-        value = energy(*args)
+        energy(*args)
+        value = solver.body_E.to_numpy()[:1]              # E_b of the scene's one body
         if not paths[-1]:
             paths[-1].append(value)
         last[:] = [value]
-        return value
 
-    def logged_accept(v):
-        paths[-1].append(last[0])           # the trial just evaluated is the one accepted
-        accept(v)
+    def logged_accept(v, first):
+        if not first:
+            paths[-1].append(last[0])       # the trial just evaluated is the one accepted
+        accept(v, first)
 
     def logged_step(*args):
         paths.append([])
@@ -72,7 +73,7 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
     assert halvings > 0, "the case must exercise the line search"
     assert sum(len(path) - 1 for path in paths) >= len(paths)   # Newton iterations were accepted
     for path in paths:
-        assert all(b <= a for a, b in zip(path, path[1:])), path
+        assert all(b <= a for a, b in zip(path, path[1:])), path   # noqa: (1,) arrays
 
 
 def two_bodies(quiet_only=False):
@@ -89,8 +90,8 @@ def two_bodies(quiet_only=False):
 
 
 def test_a_quiet_body_is_solved_as_well_beside_a_huge_impulse(f64):
-    """Per-body stopping: the hit body's huge residual does not set the scale for its quiet
-    neighbour, which ends where it ends when simulated alone."""
+    """Per-body stopping and line search: the hit body's huge residual and energy set neither
+    the scale nor the resolution for its quiet neighbour, which ends where it ends alone."""
     pair, alone = fem.Simulation(two_bodies()), fem.Simulation(two_bodies(quiet_only=True))
     n = alone.model.n_vertices
     start = alone.positions()
@@ -99,10 +100,11 @@ def test_a_quiet_body_is_solved_as_well_beside_a_huge_impulse(f64):
         alone.step()
     moved = np.abs(alone.positions() - start).max()
     assert moved > 1e-2
-    # Within 2 % of its motion, not to its own tolerance: Newton stops on the whole scene's
-    # decrement, whose round-off floor the hit body's energy sets (0.7 % with block Jacobi,
-    # 1.0 % two-level; a quiet body left unsolved would be off by its whole motion)
-    assert np.abs(pair.positions()[:n] - alone.positions()).max() < 2e-2 * moved
+    # Within 0.1 % of its motion (measured 0.008 %): each body has its own line search and
+    # stopping test. With one line search on the scene's E, whose float64 sum cannot resolve
+    # the quiet body's share beside the hit body's energy, it ended 0.7 to 1 % off; a quiet
+    # body left unsolved would be off by its whole motion.
+    assert np.abs(pair.positions()[:n] - alone.positions()).max() < 1e-3 * moved
 
 
 def test_a_body_at_rest_costs_no_solver_iterations(f64):
