@@ -662,26 +662,33 @@ def markdown(results):
 
 # What limits each speed target that a run does not meet (profiles taken on the 2-core machine).
 LIMITS = {
-    "warm": "a warm start is Python's imports (about 0.3 s), Taichi's frontend translating the ~30 kernels "
-            "a step and its summary launch (about 1.1 s: it translates even when the offline cache then "
-            "supplies the compiled code) and LLVM turning each cached kernel into machine code (about 1.2 s, "
-            "10 to 40 ms a kernel); fewer, larger kernels would cut the last two",
+    "warm": "a warm start is Python's imports (about 0.5 s), Taichi's frontend translating the 27 kernel "
+            "instances of epcot's first step (about 0.85 s, the rotations and PCG alone 0.37 s: it translates "
+            "even when the offline cache then supplies the compiled code) and loading each cached kernel "
+            "(about 0.9 s); fewer, smaller kernels would cut both",
     "rotation": "on box50k, reading a tet's corners and Bm, forming F and writing Bm R^T and the quaternion "
-                "alone takes about 12 ns/tet on 2 cores, one bare Newton step on the polar decomposition "
-                "36 ns/tet, and the certified extraction (its error bound checked, the twist stiffness) about "
-                "80 ns/tet: 15 ns/tet leaves no room for the rotation's arithmetic on this machine",
-    "fixed": "rotation extraction, once per step (and once per line-search trial with Newton)",
-    "box50k": "the two-level preconditioner halves block Jacobi's iterations (about 12 at 1e-3, from 24), "
-              "each about 1.1 ms (the coarse level adds 0.25 ms to block Jacobi's 0.9); what is left is the "
-              "step's fixed work, about 10 ms: rotations 3.5, the gradient 2.3, the block-Jacobi build 1, "
-              "the start of PCG 0.6, and a dozen small passes. A multigrid V-cycle would cut iterations "
-              "further but costs two extra matrix products per iteration",
-    "stiff": "as box50k: iterations (about 17, from 65 with block Jacobi) and the step's fixed work",
+                "alone takes about 12 ns/tet on 2 cores; started from the last step's turn, one certified "
+                "Newton step on the polar decomposition finds R (two from the last R alone: 69 ns/tet), and "
+                "its scalar arithmetic (F R^T, the Hessian's inverse, the error bound) takes the rest: 15 ns/tet "
+                "leaves no room for it on this machine",
+    "fixed": "rotation extraction, once per step (and once per line-search trial with Newton); its share "
+             "grew as the rest of the step got faster (the first guess, fewer passes): the worst scene is "
+             "box10k, 1.2 ms of 6.9",
+    "box50k": "the extrapolated first guess and the two-level preconditioner leave about 8 PCG iterations at "
+              "1e-3 (24 with block Jacobi from v_n), each about 1.1 ms (the coarse level adds 0.25 ms to block "
+              "Jacobi's 0.9); the rest is the step's fixed work, about 8 ms: rotations 2.7, the block-Jacobi "
+              "build 1, the first product and the start of PCG 1, the gradient 0.8, and a dozen small passes. "
+              "17.2 ms is 58 steps/s, 3 % short, about the spread between runs on this machine",
+    "newton": "2.4 Newton iterations a step at 1e-3, each with its own PCG solve, a line-search trial with its "
+              "own rotation extraction (8.7 ms of rotations a step), energy sums in float64 and a new "
+              "gradient: about 36 ms. Newton buys the promise that energy never rises, not accuracy",
+    "stiff": "as box50k: iterations (about 11, from 41 with block Jacobi) and the step's fixed work",
     "direct": "the matrix-free step itself (see box50k above); PARDISO's refactorisation on 2 cores is "
               "what a user would get, symbolic analysis reused",
-    "memory": "the per-corner buffer of the gather (48 B/tet), Bm and Bm R^T (72 B/tet), quaternions and "
-              "twist (20 B/tet), eleven per-vertex CG and Newton vectors, and on large meshes the two-level "
-              "preconditioner's dense coarse inverse (up to 768 x 768: 2.4 MB in f32, 48 B/tet on box50k)",
+    "memory": "the per-corner buffer of the gather (48 B/tet), Bm and Bm R^T (72 B/tet), the damping frame "
+              "Bm R_n^T (36 B/tet, with stiffness damping), the quaternion, last turn and twist (32 B/tet), "
+              "twelve per-vertex CG and Newton vectors, and on large meshes the two-level preconditioner's "
+              "dense coarse inverse (up to 768 x 768: 2.4 MB in f32, 48 B/tet on box50k)",
 }
 
 
@@ -710,7 +717,7 @@ def targets(results):
             lambda v: v >= 60, "box50k")
         newton = find(box, method="corotational", solver="pcg", step="newton", dt_factor=1, tolerance=1e-3)
         add("box50k corotational, PCG 1e-3, Newton step", ">= 60 steps/s", newton and 1e3 / newton["ms_median"],
-            "steps/s", lambda v: v >= 60, "box50k")
+            "steps/s", lambda v: v >= 60, "newton")
     shares = [100 * r["rotation_ms"] / r["ms_median"] for s in results["scenes"]
               if (r := find(s, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=1e-3))]
     add("corotation's fixed work, one-solve step at PCG 1e-3, worst scene", "<= 5 %", max(shares, default=None),

@@ -41,7 +41,8 @@ import taichi as ti
 from fem.coarse import Patches
 from fem.elastic import (corner_forces, edge_matrix, energy_density, is_finite, linear_stress,
                          stiffness_block)
-from fem.rotation import conjugate, newton_rotation, polar_rotation, quaternion_matrix, quaternion_of, quaternion_product
+from fem.rotation import (conjugate, newton_rotation, polar_rotation, quaternion_matrix, quaternion_of,
+                          quaternion_product)
 from fem.runtime import epsilon, serial_loops
 
 ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
@@ -134,7 +135,7 @@ class ImplicitSolver:
         self.rotated_Bm = ti.Matrix.field(3, 3, float, m)     # Bm R^T at the current iterate
         self.damping_Bm = ti.Matrix.field(3, 3, float, m if self.has_stiffness_damping else 1)  # Bm R_n^T
         self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
-        self.turn = ti.Vector.field(3, float, m)              # (x, y, z) of R_n R_(n-1)^-1: the last step's turn
+        self.turn = ti.Vector.field(3, float, m)              # (x, y, z) of R_n R_(n-1)^-1, the last turn
         self.twist = ti.field(float, m)                       # twist stiffness of the Newton matrix, Pa
         self.needs_svd = ti.field(ti.i8, m)                   # 1: the tet's R comes from the SVD
         self.corner = vec(4 * m)                              # per-corner values before the gather
@@ -143,7 +144,7 @@ class ImplicitSolver:
         self.velocity = vec(n)                                # v of the accepted Newton iterate, m/s
         self.rhs = vec(n)                                     # -grad E at that iterate (unfiltered), N s
         self.solution = vec(n)                                # the Newton direction d, m/s
-        self.change = vec(n)                                  # v_n - v_(n-1): the last step's velocity change, m/s
+        self.change = vec(n)                                  # v_n - v_(n-1), the last step's change, m/s
         self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n)
         self.block_inverse = ti.Matrix.field(3, 3, float, n)  # Jacobi preconditioner: inverse 3x3 blocks of H
         self.contact = ti.field(ti.i32, n if self.has_ground else 1)   # 1: on the ground this step
@@ -161,7 +162,7 @@ class ImplicitSolver:
         self.body_slope = ti.field(ti.f64, nb)                # grad_b E . d_b, J (< 0: d descends for body b)
         self.body_step = ti.field(float, nb)                  # a_b: body b's step along d in the line search
         self.searching = ti.field(ti.i32, nb)                 # 1: body b has not found its decrease yet
-        self.body_total = ti.field(ti.f64, (2, nb))           # total energy of each body [BEFORE] and [AFTER] the step, J
+        self.body_total = ti.field(ti.f64, (2, nb))           # each body's total energy [BEFORE, AFTER] the step, J
         self.body_total_size = ti.field(ti.f64, (2, nb))      # sum of the sizes of its terms, J
         self.body_mass = ti.field(ti.f64, nb)                 # kg (free vertices only)
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)   # kg m/s
@@ -364,7 +365,8 @@ class ImplicitSolver:
             return 0.0
         start = time.perf_counter()
         newton = int(self.settings.step == "newton" and not self.model.any_naive)   # twist stiffness
-        if self.extract_rotations(x, self.settings.rotations == "svd", newton, int(first), self.extrapolation) > 0:
+        svd = self.settings.rotations == "svd"
+        if self.extract_rotations(x, svd, newton, int(first), self.extrapolation) > 0:
             self.svd_rotations(x, newton)
         self.rotated = True
         ti.sync()
@@ -619,7 +621,8 @@ class ImplicitSolver:
                 total += W * energy_density(F, mu, lam, 1.0)
                 if ti.static(self.has_stiffness_damping):
                     dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm[e], ti.f64)
-                    total += ti.cast(dt * self.stiffness_damping[None], ti.f64) * W * energy_density(dF, mu, lam, 0.0)
+                    beta = ti.cast(dt * self.stiffness_damping[None], ti.f64)
+                    total += beta * W * energy_density(dF, mu, lam, 0.0)
             if body >= 0:
                 self.body_E[body] += total
 
@@ -919,7 +922,8 @@ class ImplicitSolver:
             self.body_slope[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            self.body_slope[self.model.vertex_body[i]] -= ti.cast(self.filtered(i, self.rhs[i]).dot(self.solution[i]), ti.f64)
+            slope = -self.filtered(i, self.rhs[i]).dot(self.solution[i])
+            self.body_slope[self.model.vertex_body[i]] += ti.cast(slope, ti.f64)
         count = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):

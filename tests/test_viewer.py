@@ -264,9 +264,15 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
         log.flush()
         try:
             xdotool(env, "key", "--window", wid, "Escape")
-        except subprocess.CalledProcessError as failure:
-            raise AssertionError(f"{failure.stderr} (window exit code {window.poll()}):\n"
-                                 + (tmp_path / "view.log").read_text()) from failure
+        except subprocess.CalledProcessError:
+            # Seen twice in ~10 loaded suite runs: X said BadWindow for the id the keys above
+            # reached while the viewer ran on. Look the window up again and press Escape there.
+            try:
+                again = xdotool(env, "search", "--onlyvisible", "--name", "softfem", timeout=10).split()
+                xdotool(env, "key", "--window", again[0], "Escape")
+            except (subprocess.CalledProcessError, IndexError) as failure:
+                raise AssertionError(f"{getattr(failure, 'stderr', failure)} (window exit code "
+                                     f"{window.poll()}):\n" + (tmp_path / "view.log").read_text()) from failure
         assert window.wait(30) == 0, (tmp_path / "view.log").read_text()
     finally:
         if window.poll() is None:
