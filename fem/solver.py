@@ -615,16 +615,23 @@ class ImplicitSolver:
                     if body >= 0:
                         self.body_E[body] += total
                     body, total = self.model.tet_body[e], 0.0
-                W = ti.cast(self.model.rest_volume[e] * self.tet_awake(e), ti.f64)
-                mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
-                F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
-                total += W * energy_density(F, mu, lam, 1.0)
+                awake = ti.cast(self.tet_awake(e), ti.f64)
+                total += awake * self.elastic_energy(x, e)
                 if ti.static(self.has_stiffness_damping):
+                    W = ti.cast(self.model.rest_volume[e], ti.f64)
+                    mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
                     dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm[e], ti.f64)
                     beta = ti.cast(dt * self.stiffness_damping[None], ti.f64)
-                    total += beta * W * energy_density(dF, mu, lam, 0.0)
+                    total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
             if body >= 0:
                 self.body_E[body] += total
+
+    @ti.func
+    def elastic_energy(self, x: ti.template(), e):
+        """Psi_e(x) = W psi(F R^T) of tet e at positions x, in float64 (J), R as extracted."""
+        F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
+        return ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
+            F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
 
     # ------------------------------------------------------------ per-vertex kernels
 
@@ -814,9 +821,7 @@ class ImplicitSolver:
                         self.body_total[when, body] += elastic
                         self.body_total_size[when, body] += elastic
                     body, elastic = self.model.tet_body[e], 0.0
-                F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
-                elastic += ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
-                    F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
+                elastic += self.elastic_energy(x, e)
             if body >= 0:
                 self.body_total[when, body] += elastic
                 self.body_total_size[when, body] += elastic
