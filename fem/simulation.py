@@ -200,10 +200,18 @@ class Simulation:
             work.v.fill(0.0)
         return work
 
+    def _rotate(self, x):
+        """The solver's rotations at positions x; the next step then knows nothing of the last
+        step's turn, as they are overwritten. Returns the work state."""
+        work = self._work(x)
+        self.solver.forget_change()
+        self.solver.update_rotations(work.x, self.model.any_corotational)
+        return work
+
     def rotations(self, x=None):
         """(m, 3, 3) the rotation R of every tet at positions x, as the solver extracts it
         (identity for linear tets); leaves the solver's rotations there."""
-        self.solver.update_rotations(self._work(x).x, self.model.any_corotational)
+        self._rotate(x)
         m = self.model.n_tets
         rotated_Bm = self.solver.rotated_Bm.to_numpy()[:m].astype(np.float64)
         Dm = np.linalg.inv(self.model.Bm.to_numpy()[:m].astype(np.float64))
@@ -211,8 +219,7 @@ class Simulation:
 
     def forces(self, x=None):
         """(n, 3) elastic forces f(x) = -grad Psi(x) (N) at positions x (None: the current ones)."""
-        work = self._work(x)
-        self.solver.update_rotations(work.x, self.model.any_corotational)
+        work = self._rotate(x)
         self.solver.elastic_forces(work.x, self.solver.Ap)
         return self.solver.Ap.to_numpy()[:self.model.n_vertices].astype(np.float64)
 
@@ -226,7 +233,7 @@ class Simulation:
         (None: the current ones); (cM, cK) default to the step's."""
         if cM is None:
             cM, cK = self.coefficients
-        self.solver.update_rotations(self._work(x).x, self.model.any_corotational)
+        self._rotate(x)
         return self.solver.apply_matrix(np.asarray(u, np.float64), cM, cK)
 
     # ------------------------------------------------------------ reading

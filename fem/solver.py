@@ -54,6 +54,7 @@ TWO_LEVEL_VERTICES = 2000   # "auto": below, block Jacobi is as fast (its iterat
 BEFORE, AFTER = 0, 1     # rows of ImplicitSolver.body_total
 TET_CHUNK = 16           # tets a thread sums per body before adding to a per-body total
 NAIVE = 2                # Model.corotational of a tet of the naive variant (fem.scene.METHODS)
+STALE_TURN = 0.2         # rad: PCG's block-Jacobi blocks are rebuilt once some tet turned this far
 
 
 @ti.func
@@ -138,6 +139,7 @@ class ImplicitSolver:
         self.turn = ti.Vector.field(3, float, m)              # (x, y, z) of R_n R_(n-1)^-1, the last turn
         self.twist = ti.field(float, m)                       # twist stiffness of the Newton matrix, Pa
         self.needs_svd = ti.field(ti.i8, m)                   # 1: the tet's R comes from the SVD
+        self.largest_turn = ti.field(float, ())               # largest |turn|^2 of this step (sin^2 of half the angle)
         self.corner = vec(4 * m)                              # per-corner values before the gather
         self.x0, self.v0 = vec(n), vec(n)                     # the step's start x_n (m), v_n (m/s)
         self.x, self.v = vec(n), vec(n)                       # the iterate x = x_n + dt v, v
@@ -198,6 +200,7 @@ class ImplicitSolver:
     def wake(self, awake):
         """Which bodies the step moves: (bodies,) of 0 (asleep: left exactly as they are) or 1."""
         self.model.write(self.awake, np.asarray(awake, np.int32))
+        self.preconditioner_key = None                        # a body that wakes has no blocks yet
 
     def reset(self):
         """Forget everything from earlier steps: rotations, warm starts, ground contacts, sleep."""
@@ -213,6 +216,8 @@ class ImplicitSolver:
         """The next step starts its solve from v_n itself: after a new state, the last step's
         velocity change says nothing about the next one."""
         self.change.fill(0)
+        self.preconditioner_key = None                        # the blocks are for other rotations
+        self.turned = 0.0                                     # rad: largest turn of a tet since they were built
         self.change_dt = 0.0                                  # s, the dt of the step that made `change`
         self.extrapolation = 0.0                              # dt / change_dt: how far to extrapolate
 
@@ -274,9 +279,15 @@ class ImplicitSolver:
         self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
         if self.has_stiffness_damping:
             self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
-        if corotational or self.preconditioner_key != (cM, cK):
-            self.build_preconditioner(cM, cK)                 # linear: built once, as H never changes
-            self.preconditioner_key = None if corotational else (cM, cK)
+        # Block Jacobi's blocks follow the tets' rotations. PCG only needs them close: in the
+        # one-solve step they are rebuilt once some tet turned STALE_TURN since they were built.
+        # Newton's twist stiffness changes with the stretch, and Jacobi iteration's weight
+        # needs the exact blocks: those rebuild every step. Linear: built once, as H never changes.
+        stale = corotational and (newton or settings.method != "pcg" or self.turned > STALE_TURN)
+        if stale or self.preconditioner_key != (cM, cK):
+            self.build_preconditioner(cM, cK)
+            self.preconditioner_key = None if newton else (cM, cK)
+            self.turned = 0.0
         if self.two_level:
             self.prepare_patches(cM, cK, corotational)
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())   # none below round-off
@@ -366,8 +377,12 @@ class ImplicitSolver:
         start = time.perf_counter()
         newton = int(self.settings.step == "newton" and not self.model.any_naive)   # twist stiffness
         svd = self.settings.rotations == "svd"
-        if self.extract_rotations(x, svd, newton, int(first), self.extrapolation) > 0:
+        left = self.extract_rotations(x, svd, newton, int(first), self.extrapolation)
+        if left > 0:
             self.svd_rotations(x, newton)
+        if first:                                             # how far the blocks' rotations are off, at most
+            turn = math.sqrt(min(float(self.largest_turn[None]), 1.0))
+            self.turned = math.inf if left > 0 else self.turned + 2.0 * math.asin(turn)
         self.rotated = True
         ti.sync()
         return 1e3 * (time.perf_counter() - start)
@@ -470,6 +485,7 @@ class ImplicitSolver:
         run first needs it: it is most of the compile time.
         """
         left = 0
+        self.largest_turn[None] = 0.0
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             self.needs_svd[e] = 0
@@ -491,7 +507,9 @@ class ImplicitSolver:
                         turn = quaternion_product(q, conjugate(last))
                         if turn[3] < 0:                  # -p is the same turn: keep w >= 0
                             turn = -turn
-                        self.turn[e] = ti.Vector([turn[0], turn[1], turn[2]]) * (scale > 0 and converged)
+                        t = ti.Vector([turn[0], turn[1], turn[2]]) * (scale > 0 and converged)
+                        self.turn[e] = t
+                        ti.atomic_max(self.largest_turn[None], t.norm_sqr())
                     if not converged:
                         self.needs_svd[e] = 1
                         left += 1

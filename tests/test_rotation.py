@@ -310,6 +310,8 @@ def test_the_solver_starts_its_rotations_from_the_last_steps_turn(precision):
     U, _, Vt = np.linalg.svd(F)
     np.testing.assert_allclose(sim.rotations(), U @ Vt, atol=TOLERANCE[precision])
 
+    sim.step()                       # sim.rotations() overwrote the rotations: no turn is known
+    assert not sim.solver.turn.to_numpy().any()
     sim.step()
     assert sim.solver.turn.to_numpy().any()
     sim.set_state(sim.positions(), sim.velocities())
