@@ -60,7 +60,7 @@ class Measure:
             self.tet_volume_ratio[e] = J
             self.needs_svd[e] = 0
             R = ti.Matrix.identity(float, 3)
-            if self.model.corotational[e]:
+            if self.model.method(e):
                 q, converged = newton_rotation(F, self.start[e])
                 R = quaternion_matrix(q)
                 if not converged:
@@ -93,8 +93,8 @@ class Measure:
 
     @ti.func
     def add_energy(self, e, F, R):
-        psi = energy_density(ti.cast(R.transpose() @ F, ti.f64), ti.cast(self.model.mu[e], ti.f64),
-                             ti.cast(self.model.lam[e], ti.f64), 1.0)
+        psi = energy_density(ti.cast(R.transpose() @ F, ti.f64), ti.cast(self.model.mu(e), ti.f64),
+                             ti.cast(self.model.lam(e), ti.f64), 1.0)
         self.elastic[self.model.tet_body[e]] += psi * ti.cast(self.model.rest_volume[e], ti.f64)
         self.tet_energy_density[e] = ti.cast(psi, float)
 

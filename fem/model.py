@@ -1,8 +1,8 @@
 """Model (what never changes in a run, except by a live edit) and State (what does), as Taichi fields.
 
 `model_arrays(scene)` (fem/builder.py) concatenates every body into one set of arrays, so
-a single kernel launch covers all bodies; per-tet Lame parameters and a per-tet method
-flag let each body keep its own material and method. The Model keeps no reference to
+a single kernel launch covers all bodies; per-body Lame parameters and method flags,
+read through each tet's body, let each body keep its own material and method. The Model keeps no reference to
 the Scene it was built from.
 
 Fields are sized to a `Capacity`, not to the mesh: kernels loop over the counts in use
@@ -63,8 +63,8 @@ class Model:
         tets (m, 4)             vertex ids, positively oriented
         Bm (m, 3x3)             inverse rest edge matrix, 1/m
         rest_volume (m,)        W, m^3
-        mu, lam (m,)            Lame parameters, Pa
-        corotational (m,)       0 linear, 1 corotational, 2 the naive variant (NAIVE)
+        body_mu, body_lam (bodies,)   Lame parameters, Pa (per tet: mu(e), lam(e))
+        body_method (bodies,)   0 linear, 1 corotational, 2 the naive variant (NAIVE) (per tet: method(e))
         mass (n,)               lumped mass, kg
         free (n,)               0 for pinned vertices, else 1
         vertex_body (n,), tet_body (m,)   the body each belongs to
@@ -81,9 +81,9 @@ class Model:
         self.tets = ti.Vector.field(4, ti.i32, m)
         self.Bm = ti.Matrix.field(3, 3, float, m)
         self.rest_volume = ti.field(float, m)
-        self.mu = ti.field(float, m)
-        self.lam = ti.field(float, m)
-        self.corotational = ti.field(ti.i32, m)
+        self.body_mu = ti.field(float, nb)
+        self.body_lam = ti.field(float, nb)
+        self.body_method = ti.field(ti.i32, nb)
         self.mass = ti.field(float, n)
         self.free = ti.field(float, n)
         self.vertex_body = ti.field(ti.i32, n)
@@ -162,15 +162,12 @@ class Model:
     # ------------------------------------------------------------ live edits: the one path
 
     def set_material(self, body, material):
-        """A new Material (E Pa, nu; density stays) for one body's tets."""
+        """A new Material (E Pa, nu; density stays) for one body."""
         info = self.bodies[body]
         material = Material(material.E, material.nu, info.material.density)
         material.check(f"body {info.name!r}")
         info.material = material
-        s = info.tets
-        mu, lam = material.lame
-        self._fill(self.mu, s.start, s.stop, mu)
-        self._fill(self.lam, s.start, s.stop, lam)
+        self._set_body(body, *material.lame, METHODS.index(info.method))
         self.version += 1
 
     def set_method(self, body, method):
@@ -179,9 +176,27 @@ class Model:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         info = self.bodies[body]
         info.method = method
-        s = info.tets
-        self._fill_int(self.corotational, s.start, s.stop, METHODS.index(method))
+        self._set_body(body, *info.material.lame, METHODS.index(method))
         self.version += 1
+
+    @ti.kernel
+    def _set_body(self, body: ti.i32, mu: float, lam: float, method: ti.i32):
+        self.body_mu[body], self.body_lam[body], self.body_method[body] = mu, lam, method
+
+    @ti.func
+    def mu(self, e):
+        """Lame's mu of tet e's body, Pa."""
+        return self.body_mu[self.tet_body[e]]
+
+    @ti.func
+    def lam(self, e):
+        """Lame's lambda of tet e's body, Pa."""
+        return self.body_lam[self.tet_body[e]]
+
+    @ti.func
+    def method(self, e):
+        """0 linear, 1 corotational, 2 naive (fem.scene.METHODS) for tet e's body."""
+        return self.body_method[self.tet_body[e]]
 
     @property
     def any_corotational(self):
@@ -203,16 +218,6 @@ class Model:
         """Per body, m (relative L / dt)^2 (J): twice the kinetic energy of the body moving
         `relative` of its size L in a step. Below it a velocity change is round-off."""
         return np.array([b.mass * (relative * b.size / dt) ** 2 for b in self.bodies])
-
-    @ti.kernel
-    def _fill(self, f: ti.template(), start: ti.i32, stop: ti.i32, value: float):
-        for e in range(start, stop):
-            f[e] = value
-
-    @ti.kernel
-    def _fill_int(self, f: ti.template(), start: ti.i32, stop: ti.i32, value: ti.i32):
-        for e in range(start, stop):
-            f[e] = value
 
 
 @ti.data_oriented

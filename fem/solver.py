@@ -53,7 +53,7 @@ CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, sam
 TWO_LEVEL_VERTICES = 2000   # "auto": below, block Jacobi is as fast (its iterations cost less; measured)
 BEFORE, AFTER = 0, 1     # rows of ImplicitSolver.body_total
 TET_CHUNK = 16           # tets a thread sums per body before adding to a per-body total
-NAIVE = 2                # Model.corotational of a tet of the naive variant (fem.scene.METHODS)
+NAIVE = 2                # Model.method(e) of a tet of the naive variant (fem.scene.METHODS)
 STALE_TURN = 0.2         # rad: PCG's block-Jacobi blocks are rebuilt once some tet turned this far
 
 
@@ -134,7 +134,7 @@ class ImplicitSolver:
         self.ground = ti.field(float, ())                     # plane height y, m
         self.friction = ti.field(float, ())                   # share of tangential velocity lost on contact
         self.rotated_Bm = ti.Matrix.field(3, 3, float, m)     # Bm R^T at the current iterate
-        self.damping_Bm = ti.Matrix.field(3, 3, float, m if self.has_stiffness_damping else 1)  # Bm R_n^T
+        self.damping_frame = ti.Vector.field(4, float, m if self.has_stiffness_damping else 1)  # R_n as (x, y, z, w)
         self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
         self.turn = ti.Vector.field(3, float, m)              # (x, y, z) of R_n R_(n-1)^-1, the last turn
         self.twist = ti.field(float, m)                       # twist stiffness of the Newton matrix, Pa
@@ -148,7 +148,8 @@ class ImplicitSolver:
         self.solution = vec(n)                                # the Newton direction d, m/s
         self.change = vec(n)                                  # v_n - v_(n-1), the last step's change, m/s
         self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n)
-        self.block_inverse = ti.Matrix.field(3, 3, float, n)  # Jacobi preconditioner: inverse 3x3 blocks of H
+        self.block_inverse = ti.Vector.field(6, float, n)     # Jacobi preconditioner: inverse 3x3 blocks
+                                                              # of H, symmetric: (xx, xy, xz, yy, yz, zz)
         self.contact = ti.field(ti.i32, n if self.has_ground else 1)   # 1: on the ground this step
         self.pressed = ti.field(ti.i32, n if self.has_ground else 1)   # 1: the ground pushed it last step
         self.body_floor = ti.field(ti.f64, nb)                # (N s)^2: round-off floor of |grad_b|^2
@@ -277,8 +278,6 @@ class ImplicitSolver:
         if newton:
             self.body_energy(self.x, self.v, BEFORE)          # x, v = x_n, v_n still
         self.start_iterate(self.x0, self.v0, self.x, self.v, dt)
-        if self.has_stiffness_damping:
-            self.freeze_damping_frame()                       # D = alpha M + beta K(R_n) for the whole step
         # Block Jacobi's blocks follow the tets' rotations. PCG only needs them close: in the
         # one-solve step they are rebuilt once some tet turned STALE_TURN since they were built.
         # Newton's twist stiffness changes with the stretch, and Jacobi iteration's weight
@@ -379,7 +378,7 @@ class ImplicitSolver:
         svd = self.settings.rotations == "svd"
         left = self.extract_rotations(x, svd, newton, int(first), self.extrapolation)
         if left > 0:
-            self.svd_rotations(x, newton)
+            self.svd_rotations(x, newton, int(first))
         if first:                                             # how far the blocks' rotations are off, at most
             turn = math.sqrt(min(float(self.largest_turn[None]), 1.0))
             self.turned = math.inf if left > 0 else self.turned + 2.0 * math.asin(turn)
@@ -416,7 +415,7 @@ class ImplicitSolver:
         if key != self.omega_key:
             self.build_preconditioner(cM, cK)
             self.preconditioner_key = None
-            P = self.block_inverse.to_numpy()[:self.model.n_vertices]
+            P = self.block_inverses()
             u = np.random.default_rng(0).standard_normal((self.model.n_vertices, 3))
             lam = 1.0
             for _ in range(30):
@@ -445,7 +444,7 @@ class ImplicitSolver:
             self.two_level_precondition(1)
         else:
             for i in range(self.model.vertex_count[None]):
-                self.z[i] = self.filtered(i, self.block_inverse[i] @ self.r[i])
+                self.z[i] = self.filtered(i, self.jacobi(i, self.r[i]))
 
     # ------------------------------------------------------------ per-tet kernels
 
@@ -455,6 +454,8 @@ class ImplicitSolver:
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
+            if ti.static(self.has_stiffness_damping):
+                self.damping_frame[e] = self.quaternions[e]
             self.turn[e] = ti.Vector.zero(float, 3)
             self.rotated_Bm[e] = self.model.Bm[e]
             self.twist[e] = 0.0
@@ -477,7 +478,8 @@ class ImplicitSolver:
         svd=False: warm-started Newton steps from last time's R; a tet where they do not
         certify their answer (a start far off, an inverted tet) is left for `svd_rotations`.
         first=1 (at x_n): they start from last time's R turned on by the last step's turn
-        (times `scale`, the ratio of the dts; 0: no last step) and record this step's turn.
+        (times `scale`, the ratio of the dts; 0: no last step) and record this step's turn,
+        and R_n as the frame of the step's stiffness damping.
         On a turning body one step then certifies R where the last R alone needs two.
         svd=True: every corotational tet is left for it (the reference).
         newton=1 also sets each tet's twist stiffness (below); 0 leaves it 0 (the one-solve step).
@@ -491,7 +493,7 @@ class ImplicitSolver:
             self.needs_svd[e] = 0
             if not self.tet_awake(e):            # a sleeping body keeps its rotations
                 continue
-            if self.model.corotational[e]:
+            if self.model.method(e):
                 if ti.static(svd):
                     self.needs_svd[e] = 1
                     left += 1
@@ -502,7 +504,7 @@ class ImplicitSolver:
                     if first:
                         start = quaternion_product(self.turn_quaternion(e, scale), last).normalized()
                     q, converged = newton_rotation(F, start)
-                    self.set_rotation(e, F, quaternion_matrix(q), q, newton)
+                    self.set_rotation(e, F, quaternion_matrix(q), q, newton, first)
                     if first:
                         turn = quaternion_product(q, conjugate(last))
                         if turn[3] < 0:                  # -p is the same turn: keep w >= 0
@@ -517,6 +519,8 @@ class ImplicitSolver:
                 self.turn[e] = ti.Vector.zero(float, 3)
                 self.twist[e] = 0.0
                 self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
+                if ti.static(self.has_stiffness_damping):
+                    self.damping_frame[e] = self.quaternions[e]
                 self.rotated_Bm[e] = self.model.Bm[e]
         return left
 
@@ -527,21 +531,24 @@ class ImplicitSolver:
         return ti.Vector([v[0], v[1], v[2], ti.sqrt(ti.max(1.0 - v.norm_sqr(), 0.0))])
 
     @ti.kernel
-    def svd_rotations(self, x: ti.template(), newton: ti.i32):
+    def svd_rotations(self, x: ti.template(), newton: ti.i32, first: ti.i32):
         """The polar rotation from the SVD (`polar_rotation`) for the tets left by extract_rotations."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             if self.needs_svd[e]:
                 F = self.edges(x, e) @ self.model.Bm[e]
                 R = polar_rotation(F)
-                self.set_rotation(e, F, R, quaternion_of(R), newton)
+                self.set_rotation(e, F, R, quaternion_of(R), newton, first)
 
     @ti.func
-    def set_rotation(self, e, F, R, q, newton):
+    def set_rotation(self, e, F, R, q, newton, first):
         self.quaternions[e] = q                               # the next warm start
+        if ti.static(self.has_stiffness_damping):
+            if first:
+                self.damping_frame[e] = q                     # D = alpha M + beta K(R_n) for the whole step
         self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
-        self.twist[e] = newton * twist_stiffness((R.transpose() @ F).trace(), self.model.mu[e],
-                                                 self.model.lam[e])
+        self.twist[e] = newton * twist_stiffness((R.transpose() @ F).trace(), self.model.mu(e),
+                                                 self.model.lam(e))
 
     # The Newton matrix R Ke R^T misses the curvature of Psi when a tet turns: the "twist"
     # modes (skew parts of R^T dF) get none, where the exact Hessian of the corotated energy
@@ -551,12 +558,10 @@ class ImplicitSolver:
     # and the line search halves every step; `twist` adds it, projected to >= 0 and with all
     # s_i taken equal to their mean (tr S / 3), as lam_t |skew(R^T dF)|^2.
 
-    @ti.kernel
-    def freeze_damping_frame(self):
-        """damping_Bm <- rotated_Bm: the damping stiffness K_n uses the rotations at the step's start."""
-        ti.loop_config(serialize=self.serial_tets)
-        for e in range(self.model.tet_count[None]):
-            self.damping_Bm[e] = self.rotated_Bm[e]
+    @ti.func
+    def damping_Bm(self, e):
+        """Bm R_n^T of tet e: the damping stiffness K_n uses the rotations at the step's start."""
+        return self.model.Bm[e] @ quaternion_matrix(self.damping_frame[e]).transpose()
 
     # Corotational FEM without a rotation in the inner loop: sigma is isotropic, so
     #     R sigma(sym(R^T F) - I) Bm^T = sigma(sym(Ds Bm R^T) - I) (Bm R^T)^T,
@@ -573,7 +578,7 @@ class ImplicitSolver:
         B = self.rotated_Bm[e]
         dF = edge_matrix(d0, d1, d2, d3) @ B
         eps = 0.5 * (dF + dF.transpose())
-        P = linear_stress(eps, self.model.mu[e], self.model.lam[e]) + self.twist[e] * (dF - eps)
+        P = linear_stress(eps, self.model.mu(e), self.model.lam(e)) + self.twist[e] * (dF - eps)
         self.store_corners(e, corner_forces(-P, B, self.model.rest_volume[e]))
 
     @ti.kernel
@@ -597,11 +602,11 @@ class ImplicitSolver:
         sym(R^T (F - I)), in this frame sym(F R^T) - sym(R^T), not zero under a pure rotation."""
         F = self.edges(x, e) @ self.rotated_Bm[e]               # F R^T
         unstrained = ti.Matrix.identity(float, 3)
-        if self.model.corotational[e] == NAIVE:
+        if self.model.method(e) == NAIVE:
             Rt = quaternion_matrix(self.quaternions[e]).transpose()
             unstrained = 0.5 * (Rt + Rt.transpose())
         eps = 0.5 * (F + F.transpose()) - unstrained
-        return linear_stress(eps, self.model.mu[e], self.model.lam[e])
+        return linear_stress(eps, self.model.mu(e), self.model.lam(e))
 
     @ti.kernel
     def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
@@ -612,10 +617,10 @@ class ImplicitSolver:
             W = self.model.rest_volume[e] * self.tet_awake(e)       # a sleeping body's tets add nothing
             self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
             if ti.static(self.has_stiffness_damping) and moving:
-                B = self.damping_Bm[e]
+                B = self.damping_Bm(e)
                 dF = self.edges(v, e) @ B
                 eps = 0.5 * (dF + dF.transpose())
-                f = corner_forces(-dt * self.stiffness_damping[None] * linear_stress(eps, self.model.mu[e], self.model.lam[e]),
+                f = corner_forces(-dt * self.stiffness_damping[None] * linear_stress(eps, self.model.mu(e), self.model.lam(e)),
                                   B, W)
                 for k in ti.static(range(4)):
                     self.corner[4 * e + k] += f[k]
@@ -637,8 +642,8 @@ class ImplicitSolver:
                 total += awake * self.elastic_energy(x, e)
                 if ti.static(self.has_stiffness_damping):
                     W = ti.cast(self.model.rest_volume[e], ti.f64)
-                    mu, lam = ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64)
-                    dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm[e], ti.f64)
+                    mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
+                    dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm(e), ti.f64)
                     beta = ti.cast(dt * self.stiffness_damping[None], ti.f64)
                     total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
             if body >= 0:
@@ -649,7 +654,7 @@ class ImplicitSolver:
         """Psi_e(x) = W psi(F R^T) of tet e at positions x, in float64 (J), R as extracted."""
         F = ti.cast(self.edges(x, e), ti.f64) @ ti.cast(self.rotated_Bm[e], ti.f64)
         return ti.cast(self.model.rest_volume[e], ti.f64) * energy_density(
-            F, ti.cast(self.model.mu[e], ti.f64), ti.cast(self.model.lam[e], ti.f64), 1.0)
+            F, ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64), 1.0)
 
     # ------------------------------------------------------------ per-vertex kernels
 
@@ -1039,10 +1044,24 @@ class ImplicitSolver:
                 if k < 3:
                     h = B[k, :]
                 W = self.model.rest_volume[e]
-                block += cK * (stiffness_block(h, W, self.model.mu[e], self.model.lam[e])
+                block += cK * (stiffness_block(h, W, self.model.mu(e), self.model.lam(e))
                                + 0.5 * W * self.twist[e] * (h.dot(h) * ti.Matrix.identity(float, 3)
                                                             - h.outer_product(h)))
-            self.block_inverse[i] = block.inverse()
+            B = block.inverse()
+            self.block_inverse[i] = ti.Vector([B[0, 0], B[0, 1], B[0, 2], B[1, 1], B[1, 2], B[2, 2]])
+
+    @ti.func
+    def jacobi(self, i, r):
+        """D_i^-1 r: vertex i's inverse diagonal block of H times r."""
+        s = self.block_inverse[i]
+        return ti.Vector([s[0] * r[0] + s[1] * r[1] + s[2] * r[2],
+                          s[1] * r[0] + s[3] * r[1] + s[4] * r[2],
+                          s[2] * r[0] + s[4] * r[1] + s[5] * r[2]])
+
+    def block_inverses(self):
+        """(n, 3, 3) numpy: every vertex's D_i^-1 (for checks and tests)."""
+        s = self.block_inverse.to_numpy()[:self.model.n_vertices].astype(np.float64)
+        return s[:, [[0, 1, 2], [1, 3, 4], [2, 4, 5]]]
 
     @ti.kernel
     def start_residual(self, cM: float, cK: float, two_level: ti.template()) -> float:
@@ -1055,7 +1074,7 @@ class ImplicitSolver:
             self.r[i] = r
             self.p[i] = ti.Vector.zero(float, 3)
             if ti.static(not two_level):
-                z = self.filtered(i, self.block_inverse[i] @ r)
+                z = self.filtered(i, self.jacobi(i, r))
                 self.z[i] = z
                 rz += r.dot(z)
             rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
@@ -1078,7 +1097,7 @@ class ImplicitSolver:
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None] * on):
             r = self.r[i]
-            z = self.filtered(i, self.block_inverse[i] @ r + self.patches.prolong(i))
+            z = self.filtered(i, self.jacobi(i, r) + self.patches.prolong(i))
             self.z[i] = z
             rz += r.dot(z)
         return rz
@@ -1120,7 +1139,7 @@ class ImplicitSolver:
                 r = self.r[i] - step * self.Ap[i]
                 self.r[i] = r
                 if ti.static(not two_level):              # block Jacobi: z in the same pass
-                    z = self.filtered(i, self.block_inverse[i] @ r)
+                    z = self.filtered(i, self.jacobi(i, r))
                     self.z[i] = z
                     rz += r.dot(z)
                 rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
@@ -1144,7 +1163,7 @@ class ImplicitSolver:
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             r = self.filtered(i, self.rhs[i]) - self.apply_H(i, self.solution, cM, cK)
-            self.solution[i] += omega * self.filtered(i, self.block_inverse[i] @ r)
+            self.solution[i] += omega * self.filtered(i, self.jacobi(i, r))
             rr += self.body_weight[self.model.vertex_body[i]] * r.dot(r)
         return rr
 

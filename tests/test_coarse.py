@@ -98,7 +98,7 @@ def preconditioner_reference(sim, r):
     np.add.at(g, patch, np.hstack([f, np.cross(Y, f)]))
     y = (p.coarse_inverse.to_numpy()[:6 * count, :6 * count] @ g.ravel()).reshape(count, 6)
     coarse = np.einsum("nij,nj->ni", R[patch], y[patch, :3] + np.cross(y[patch, 3:], Y))
-    jacobi = np.einsum("nij,nj->ni", solver.block_inverse.to_numpy()[:n], r)
+    jacobi = np.einsum("nij,nj->ni", solver.block_inverses(), r)
     return (jacobi + coarse) * free
 
 
