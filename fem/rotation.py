@@ -108,10 +108,11 @@ def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
         B = F @ R.transpose()
         S = 0.5 * (B + B.transpose())
         H = S.trace() * ti.Matrix.identity(float, 3) - S
-        det_H = H.determinant()
-        if not (H[0, 0] > 0 and H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0] > 0 and det_H > 0):
+        A = symmetric_adjugate(H)
+        det_H = H[0, 0] * A[0, 0] + H[0, 1] * A[0, 1] + H[0, 2] * A[0, 2]
+        if not (H[0, 0] > 0 and A[2, 2] > 0 and det_H > 0):   # leading minors > 0: H positive definite
             break
-        d = H.inverse() @ omega
+        d = (A @ omega) / det_H
         # q <- p q with p = (d/2, 1) / |.|: a turn by 2 atan(|d|/2) = |d| + O(|d|^3) about d
         q = quaternion_product(ti.Vector([0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 1.0]), q).normalized()
         d2 = d.norm_sqr()
@@ -119,6 +120,14 @@ def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
             converged = True
             break
     return q, converged
+
+
+@ti.func
+def symmetric_adjugate(H):
+    """adj(H) = det(H) H^-1 of a symmetric 3x3 H (symmetric too: six cofactors)."""
+    a, b, c, d, e, f = H[0, 0], H[0, 1], H[0, 2], H[1, 1], H[1, 2], H[2, 2]
+    A01, A02, A12 = c * e - b * f, b * e - c * d, b * c - a * e
+    return ti.Matrix([[d * f - e * e, A01, A02], [A01, a * f - c * c, A12], [A02, A12, a * d - b * b]])
 
 
 @ti.func

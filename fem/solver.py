@@ -547,8 +547,10 @@ class ImplicitSolver:
             if first:
                 self.damping_frame[e] = q                     # D = alpha M + beta K(R_n) for the whole step
         self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
-        self.twist[e] = newton * twist_stiffness((R.transpose() @ F).trace(), self.model.mu(e),
-                                                 self.model.lam(e))
+        twist = 0.0
+        if newton:
+            twist = twist_stiffness((R.transpose() @ F).trace(), self.model.mu(e), self.model.lam(e))
+        self.twist[e] = twist
 
     # The Newton matrix R Ke R^T misses the curvature of Psi when a tet turns: the "twist"
     # modes (skew parts of R^T dF) get none, where the exact Hessian of the corotated energy
