@@ -26,7 +26,6 @@ how many iterations a solve takes, never what it converges to.
 """
 
 import numpy as np
-import scipy.linalg
 import taichi as ti
 
 from fem.rotation import newton_rotation, quaternion_matrix
@@ -122,13 +121,16 @@ def coarse_matrices(X, T, mass, free, patch, chunk=8192):
                    for p in parts)
     Mb = np.zeros((count, 6, 6))
     np.add.at(Mb, patch, mass[:, None, None] * np.einsum("nip,niq->npq", Phi, Phi))
-    return scipy.linalg.block_diag(*Mb), 0.5 * (K_mu + K_mu.T), 0.5 * (K_lam + K_lam.T)
+    M = np.zeros((count, 6, count, 6))
+    M[np.arange(count), :, np.arange(count), :] = Mb                     # block diagonal
+    return M.reshape(6 * count, 6 * count), 0.5 * (K_mu + K_mu.T), 0.5 * (K_lam + K_lam.T)
 
 
 def inverse(A):
     """The inverse of the symmetric positive semi-definite A, scaled to a unit diagonal first.
     Rows that are all zero (patches of pinned vertices only) stay zero; where round-off has
     made A numerically singular (a huge dt), the pseudo-inverse of its well-defined part."""
+    import scipy.linalg   # here, not at the top: its import is 0.14 s of every start, and small scenes never need it
     used = np.diag(A) > 0
     scale = 1.0 / np.sqrt(np.diag(A)[used])
     B = A[np.ix_(used, used)] * scale[:, None] * scale[None, :]
