@@ -176,11 +176,13 @@ class DirectSolver:
         self.mass = model.mass_np
         n, m = model.n_vertices, model.n_tets
         mu, lam = np.empty(m), np.empty(m)
-        self.corotational = np.zeros(m, bool)
+        self.corotational = np.zeros(m, bool)       # R from F: corotational and naive tets
+        self.naive = np.zeros(m, bool)              # f = -R Ke R^T (x - X): the rest shape turns too
         for info in model.bodies:
             E, nu = info.material.E, info.material.nu
             mu[info.tets], lam[info.tets] = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
-            self.corotational[info.tets] = info.method == "corotational"
+            self.corotational[info.tets] = info.method != "linear"
+            self.naive[info.tets] = info.method == "corotational-naive"
         g, W = shape_gradients(self.X, self.tets)
         self.Ke = element_stiffness(g, W, mu, lam)
         self.Bm = g[:, :3, :]                        # F = Ds Bm
@@ -267,10 +269,11 @@ class DirectSolver:
         return A.data.nbytes + A.indices.nbytes + A.indptr.nbytes + self.backend.factor_bytes
 
     def elastic_forces(self, R):
-        """(n, 3) f = sum over tets of -R Ke (R^T x_e - X_e), N."""
+        """(n, 3) f = sum over tets of -R Ke (R^T x_e - X_e), N (naive tets: -R Ke R^T (x_e - X_e))."""
         xe, Xe = self.x[self.tets], self.X[self.tets]
         m = len(self.tets)
-        u = np.einsum("eji,eaj->eai", R, xe) - Xe                          # R^T x_e - X_e
+        rest = np.where(self.naive[:, None, None], np.einsum("eji,eaj->eai", R, Xe), Xe)   # R^T X_e or X_e
+        u = np.einsum("eji,eaj->eai", R, xe) - rest                        # R^T x_e - X_e
         Ku = (self.Ke.reshape(m, 12, 12) @ u.reshape(m, 12, 1)).reshape(m, 4, 3)
         fe = -np.einsum("eij,eaj->eai", R, Ku)
         f = np.zeros((len(self.X), 3))

@@ -34,7 +34,7 @@ def twisted_spinning_box(method, effects=None, pinned=None):
     return scene
 
 
-@pytest.mark.parametrize("method", ["linear", "corotational"])
+@pytest.mark.parametrize("method", ["linear", "corotational", "corotational-naive"])
 def test_direct_step_equals_the_engine_step(f64, method, backend):
     sim = fem.Simulation(twisted_spinning_box(method), step="single")
     solver = DirectSolver(sim, backend)
