@@ -393,8 +393,8 @@ class ImplicitSolver:
             two_level = self.two_level
             self.stiffness_product(self.solution)
             if self.start_residual(cM, cK, two_level) > target:
-                while self.active[None]:
-                    self.cg_iterations(cM, cK, target, self.settings.max_iterations, CG_UNROLL, two_level)
+                while self.cg_iterations(cM, cK, target, self.settings.max_iterations, CG_UNROLL, two_level):
+                    pass
             return int(self.iterations[None])
         iterations = 0
         while iterations < self.settings.max_iterations:
@@ -728,9 +728,11 @@ class ImplicitSolver:
             x[i] = x0[i] + dt * u
 
     @ti.kernel
-    def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, first: ti.i32):
+    def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, tolerance: ti.f64,
+                          first: ti.i32) -> ti.f64:
         """rhs <- -grad E = M v_n + dt M g - (1 + dt alpha) M v - (gathered tet terms), and the
-        per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2."""
+        per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2.
+        Returns `gradient_norm`."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_gradient[b] = 0.0
@@ -752,9 +754,10 @@ class ImplicitSolver:
                 self.body_momentum[b] += momentum
                 self.body_scale[b] += momentum + ti.cast(self.filtered(i, tets).norm_sqr()
                                                          + self.filtered(i, g).norm_sqr(), ti.f64)
+        return self.gradient_norm(tolerance, first)
 
-    @ti.kernel
-    def gradient_norm(self, tolerance: ti.f64, first: ti.i32) -> ti.f64:
+    @ti.func
+    def gradient_norm(self, tolerance, first):
         """sum_b |grad_b|^2 / (tol^2 s_b^2 + floor_b): <= 1 exactly when every body has
         converged, relative to its own scale s_b or below its round-off floor.
         On the first call a body whose momentum |M v_n| is above the floor counts as not
@@ -774,8 +777,7 @@ class ImplicitSolver:
     def gradient(self, v0, x, v, dt, tolerance, first):
         """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1)."""
         self.gradient_corners(x, v, dt, int(not first or self.has_ground))   # first: v = 0 off the ground
-        self.gradient_vertices(v0, v, dt, int(first))
-        return self.gradient_norm(tolerance, int(first))
+        return self.gradient_vertices(v0, v, dt, tolerance, int(first))
 
     @ti.kernel
     def energy_vertices(self, v0: ti.template(), v: ti.template(), dt: float):
@@ -1106,14 +1108,15 @@ class ImplicitSolver:
 
     @ti.kernel
     def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template(),
-                      two_level: ti.template()):
+                      two_level: ti.template()) -> ti.i32:
         """Up to `unroll` PCG iterations in one launch.
 
         Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
         vertices: d, r, z and r.z, weighted r.r; two-level: z and r.z in three more,
-        `two_level_precondition`) with the scalar steps between them run serially on the device. Once the weighted |r|^2 <= target or `cap` iterations are
-        done, `active` drops to 0 and the remaining passes loop over nothing, so the
-        iteration count is exact while Python launches one kernel per `unroll`.
+        `two_level_precondition`) with the scalar steps between them run serially on the
+        device. Once the weighted |r|^2 <= target or `cap` iterations are done, `active`
+        drops to 0 and the remaining passes loop over nothing, so the iteration count is
+        exact while Python launches one kernel per `unroll`. Returns `active`.
         """
         n_tets, n = self.model.tet_count[None], self.model.vertex_count[None]
         for _ in ti.static(range(unroll)):
@@ -1156,6 +1159,7 @@ class ImplicitSolver:
                 self.iterations[None] += 1
                 if not (rr > target and self.iterations[None] < cap):
                     self.active[None] = 0
+        return self.active[None]
 
     @ti.kernel
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
