@@ -662,33 +662,39 @@ def markdown(results):
 
 # What limits each speed target that a run does not meet (profiles taken on the 2-core machine).
 LIMITS = {
-    "warm": "a warm start is Python's imports (about 0.5 s), Taichi's frontend translating the 27 kernel "
-            "instances of epcot's first step (about 0.85 s, the rotations and PCG alone 0.37 s: it translates "
-            "even when the offline cache then supplies the compiled code) and loading each cached kernel "
-            "(about 0.9 s); fewer, smaller kernels would cut both",
+    "warm": "a warm start is Python's imports (about 0.33 s), Taichi's frontend translating every kernel "
+            "epcot's first Newton step and its summary run (about 1 s, the gradient, the rotations, PCG and "
+            "the summary's measurements about 0.15 s each: it translates even when the offline cache then "
+            "supplies the compiled code), then loading the cached kernels, building the mesh and the step "
+            "itself; fewer, smaller kernels would cut the first two",
     "rotation": "on box50k, reading a tet's corners and Bm, forming F and writing Bm R^T and the quaternion "
                 "alone takes about 12 ns/tet on 2 cores; started from the last step's turn, one certified "
-                "Newton step on the polar decomposition finds R (two from the last R alone: 69 ns/tet), and "
-                "its scalar arithmetic (F R^T, the Hessian's inverse, the error bound) takes the rest: 15 ns/tet "
-                "leaves no room for it on this machine",
-    "fixed": "rotation extraction, once per step (and once per line-search trial with Newton); its share "
-             "grew as the rest of the step got faster (the first guess, fewer passes): the worst scene is "
-             "box10k, 1.2 ms of 6.9",
+                "Newton step on the polar decomposition finds R (two from the last R alone), and its scalar "
+                "arithmetic (F R^T, the Hessian's adjugate, the error bound) takes the rest: 15 ns/tet leaves "
+                "no room for it on this machine",
+    "fixed": "rotation extraction, once per step (and once per line-search trial with Newton). The worst "
+             "scene is box10k, 1.1 of 5.3 ms: there the rotation pass takes about 100 ns/tet, where box50k's "
+             "takes 50, because on this virtual machine a parallel loop of about a millisecond mostly runs on "
+             "one thread (the second vCPU takes about that long to wake): box10k's pass takes 0.95 ms on "
+             "average with two threads, 0.98 ms with one, and 0.48 ms at best",
     "box50k": "the extrapolated first guess and the two-level preconditioner leave about 8 PCG iterations at "
               "1e-3 (24 with block Jacobi from v_n), each about 1.1 ms (the coarse level adds 0.25 ms to block "
-              "Jacobi's 0.9); the rest is the step's fixed work, about 8 ms: rotations 2.7, the block-Jacobi "
-              "build 1, the first product and the start of PCG 1, the gradient 0.8, and a dozen small passes. "
-              "17.2 ms is 58 steps/s, 3 % short, about the spread between runs on this machine",
-    "newton": "2.4 Newton iterations a step at 1e-3, each with its own PCG solve, a line-search trial with its "
-              "own rotation extraction (8.7 ms of rotations a step), energy sums in float64 and a new "
-              "gradient: about 36 ms. Newton buys the promise that energy never rises, not accuracy",
+              "Jacobi's 0.9); the rest is the step's fixed work, about 6 ms: rotations 2.5, the first product "
+              "and the start of PCG 1, the gradient 0.9, the block-Jacobi build 0.3 (1 ms, one step in four), "
+              "and a dozen small passes; the machine's spread between runs is about 10 %",
+    "newton": "2.35 Newton iterations a step at 1e-3, each with its own PCG solve, a line-search trial with its "
+              "own rotation extraction (7.9 ms of rotations a step), energy sums in float64 and a new "
+              "gradient: about 34 ms. Newton buys the promise that energy never rises, not accuracy",
     "stiff": "as box50k: iterations (about 11, from 41 with block Jacobi) and the step's fixed work",
     "direct": "the matrix-free step itself (see box50k above); PARDISO's refactorisation on 2 cores is "
               "what a user would get, symbolic analysis reused",
-    "memory": "the per-corner buffer of the gather (48 B/tet), Bm and Bm R^T (72 B/tet), the damping frame "
-              "Bm R_n^T (36 B/tet, with stiffness damping), the quaternion, last turn and twist (32 B/tet), "
-              "twelve per-vertex CG and Newton vectors, and on large meshes the two-level preconditioner's "
-              "dense coarse inverse (up to 768 x 768: 2.4 MB in f32, 48 B/tet on box50k)",
+    "memory": "per tet: the per-corner buffer of the gather (48 B), Bm and Bm R^T (72 B), the quaternion, last "
+              "turn and twist (32 B), the tet's corners and their adjacency slots (32 B), the damping frame R_n "
+              "(16 B, with stiffness damping), rest volume and body (8 B); per vertex, fourteen vectors (the "
+              "state, CG's and Newton's: 168 B, 49 B/tet on epcot); fields sized to a capacity (5 % unused on "
+              "epcot); on large meshes the two-level preconditioner's dense coarse inverse (up to 768 x 768: "
+              "2.4 MB in f32, 48 B/tet on box50k). 200 B/tet would need Bm R^T recomputed in every CG "
+              "product or the gather's buffer replaced by atomics, both slower",
 }
 
 
