@@ -2,8 +2,8 @@
 
 `model_arrays(scene)` (fem/builder.py) concatenates every body into one set of arrays, so
 a single kernel launch covers all bodies; per-body Lame parameters and method flags,
-read through each tet's body, let each body keep its own material and method. The Model keeps no reference to
-the Scene it was built from.
+read through each tet's body, let each body keep its own material and method. The Model
+keeps no reference to the Scene it was built from.
 
 Fields are sized to a `Capacity`, not to the mesh: kernels loop over the counts in use
 (`vertex_count`, `tet_count`, `body_count`), so one Model, with every kernel compiled

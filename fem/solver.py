@@ -134,12 +134,13 @@ class ImplicitSolver:
         self.ground = ti.field(float, ())                     # plane height y, m
         self.friction = ti.field(float, ())                   # share of tangential velocity lost on contact
         self.rotated_Bm = ti.Matrix.field(3, 3, float, m)     # Bm R^T at the current iterate
-        self.damping_frame = ti.Vector.field(4, float, m if self.has_stiffness_damping else 1)  # R_n as (x, y, z, w)
+        damped = m if self.has_stiffness_damping else 1
+        self.damping_frame = ti.Vector.field(4, float, damped)   # R_n as (x, y, z, w): the damping's frame
         self.quaternions = ti.Vector.field(4, float, m)       # R as (x, y, z, w): the next warm start
         self.turn = ti.Vector.field(3, float, m)              # (x, y, z) of R_n R_(n-1)^-1, the last turn
         self.twist = ti.field(float, m)                       # twist stiffness of the Newton matrix, Pa
         self.needs_svd = ti.field(ti.i8, m)                   # 1: the tet's R comes from the SVD
-        self.largest_turn = ti.field(float, ())               # largest |turn|^2 of this step (sin^2 of half the angle)
+        self.largest_turn = ti.field(float, ())               # largest |turn|^2 this step: sin^2(angle / 2)
         self.corner = vec(4 * m)                              # per-corner values before the gather
         self.x0, self.v0 = vec(n), vec(n)                     # the step's start x_n (m), v_n (m/s)
         self.x, self.v = vec(n), vec(n)                       # the iterate x = x_n + dt v, v
@@ -218,7 +219,7 @@ class ImplicitSolver:
         velocity change says nothing about the next one."""
         self.change.fill(0)
         self.preconditioner_key = None                        # the blocks are for other rotations
-        self.turned = 0.0                                     # rad: largest turn of a tet since they were built
+        self.turned = 0.0                                     # rad: most any tet turned since then
         self.change_dt = 0.0                                  # s, the dt of the step that made `change`
         self.extrapolation = 0.0                              # dt / change_dt: how far to extrapolate
 
@@ -622,8 +623,8 @@ class ImplicitSolver:
                 B = self.damping_Bm(e)
                 dF = self.edges(v, e) @ B
                 eps = 0.5 * (dF + dF.transpose())
-                f = corner_forces(-dt * self.stiffness_damping[None] * linear_stress(eps, self.model.mu(e), self.model.lam(e)),
-                                  B, W)
+                P = linear_stress(eps, self.model.mu(e), self.model.lam(e))
+                f = corner_forces(-dt * self.stiffness_damping[None] * P, B, W)
                 for k in ti.static(range(4)):
                     self.corner[4 * e + k] += f[k]
 
@@ -1051,8 +1052,9 @@ class ImplicitSolver:
                 block += cK * (stiffness_block(h, W, self.model.mu(e), self.model.lam(e))
                                + 0.5 * W * self.twist[e] * (h.dot(h) * ti.Matrix.identity(float, 3)
                                                             - h.outer_product(h)))
-            B = block.inverse()
-            self.block_inverse[i] = ti.Vector([B[0, 0], B[0, 1], B[0, 2], B[1, 1], B[1, 2], B[2, 2]])
+            inv = block.inverse()
+            self.block_inverse[i] = ti.Vector([inv[0, 0], inv[0, 1], inv[0, 2],
+                                               inv[1, 1], inv[1, 2], inv[2, 2]])
 
     @ti.func
     def jacobi(self, i, r):
