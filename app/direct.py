@@ -272,8 +272,9 @@ class DirectSolver:
         """(n, 3) f = sum over tets of -R Ke (R^T x_e - X_e), N (naive tets: -R Ke R^T (x_e - X_e))."""
         xe, Xe = self.x[self.tets], self.X[self.tets]
         m = len(self.tets)
-        rest = np.where(self.naive[:, None, None], np.einsum("eji,eaj->eai", R, Xe), Xe)   # R^T X_e or X_e
-        u = np.einsum("eji,eaj->eai", R, xe) - rest                        # R^T x_e - X_e
+        u = np.einsum("eji,eaj->eai", R, xe) - Xe                          # R^T x_e - X_e
+        if self.naive.any():                                               # naive: R^T x_e - R^T X_e
+            u[self.naive] += Xe[self.naive] - np.einsum("eji,eaj->eai", R[self.naive], Xe[self.naive])
         Ku = (self.Ke.reshape(m, 12, 12) @ u.reshape(m, 12, 1)).reshape(m, 4, 3)
         fe = -np.einsum("eij,eaj->eai", R, Ku)
         f = np.zeros((len(self.X), 3))
