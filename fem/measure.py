@@ -86,6 +86,13 @@ class Measure:
                 F = self.deformation(x, e)
                 self.add_energy(e, F, polar_rotation(F))
 
+    @ti.kernel
+    def body_table(self, table: ti.types.ndarray()):
+        """Per body: kinetic, elastic and potential energy, volume, inverted tets (one read, not five)."""
+        for b in range(table.shape[0]):
+            table[b, 0], table[b, 1], table[b, 2] = self.kinetic[b], self.elastic[b], self.potential[b]
+            table[b, 3], table[b, 4] = self.volume[b], self.inverted[b]
+
     @ti.func
     def deformation(self, x: ti.template(), e):
         t = self.model.tets[e]
@@ -109,10 +116,11 @@ class Measure:
         total_energy = kinetic + elastic + gravitational potential.
         """
         self.measure(x, v)
-        nb = len(self.model.bodies)
         rest = np.array([b.rest_volume for b in self.model.bodies])
-        kinetic, elastic, potential = (f.to_numpy()[:nb] for f in (self.kinetic, self.elastic, self.potential))
-        volume, inverted = self.volume.to_numpy()[:nb], self.inverted.to_numpy()[:nb]
+        table = np.zeros((len(rest), 5))
+        self.body_table(table)
+        kinetic, elastic, potential, volume, inverted = table.T
+        inverted = inverted.astype(int)
         return {
             "kinetic_energy": float(kinetic.sum()),
             "elastic_energy": float(elastic.sum()),

@@ -1,7 +1,10 @@
 """Starting Taichi: backend (`arch`) and floating-point precision, chosen once per process."""
 
 import contextlib
+import functools
 import io
+import textwrap
+import types
 
 import taichi as ti
 
@@ -34,6 +37,7 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
     if not restart and _current.get("settings") == settings and _current.get("runtime") is ti.lang.impl.get_runtime():
         return _current["arch"]              # running as asked (and nobody called ti.init since)
     brief_source_positions(not debug)
+    remember_sources()
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
     # Taichi prints a banner on stdout; keep stdout for our own output
@@ -59,6 +63,21 @@ def brief_source_positions(on=True):
     if not hasattr(Context, "full_pos_info"):
         Context.full_pos_info = Context.get_pos_info
     Context.get_pos_info = _brief_pos_info if on else Context.full_pos_info
+
+
+def remember_sources():
+    """Taichi reads a ti.func's source again (inspect's tokeniser) and re-wraps its lines every
+    time a kernel calls it, even when the offline cache then supplies the compiled kernel: a
+    fifth of a warm start. A function's source does not change while the process runs, so
+    each is read once."""
+    from taichi.lang import kernel_impl
+
+    if isinstance(kernel_impl.getsourcelines, functools._lru_cache_wrapper):
+        return
+    remember = functools.lru_cache(maxsize=None)
+    kernel_impl.getsourcefile = remember(kernel_impl.getsourcefile)
+    kernel_impl.getsourcelines = remember(kernel_impl.getsourcelines)
+    kernel_impl.textwrap = types.SimpleNamespace(fill=remember(textwrap.fill), dedent=textwrap.dedent)
 
 
 def _brief_pos_info(context, node):

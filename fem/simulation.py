@@ -85,8 +85,9 @@ class Simulation:
         """After a step: count each awake body's quiet steps; put those quiet long enough to sleep."""
         if not self.settings.sleep:
             return
-        self.solver.body_speeds(self.state.v)
-        speed = np.sqrt(self.solver.body_speed.to_numpy()[:len(self.awake)])
+        speed = np.zeros(len(self.awake))
+        self.solver.body_speeds(self.state.v, speed)
+        speed = np.sqrt(speed)
         fell = False
         for b, body in enumerate(self.model.bodies):
             quiet = self.awake[b] and speed[b] * self.settings.dt <= QUIET_MOTION * body.size

@@ -172,7 +172,6 @@ class ImplicitSolver:
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)   # kg m/s
         self.body_pinned = ti.field(ti.i32, nb)               # 1: the body has pinned vertices
         self.awake = ti.field(ti.i32, nb)                     # 0: the body sleeps, the step leaves it be
-        self.body_speed = ti.field(ti.f64, nb)                # largest |v_i|^2 of the body, (m/s)^2
         self.rz = ti.field(float, ())                         # PCG scalars stay on the device
         self.rr = ti.field(float, ())
         self.cg_beta = ti.field(float, ())
@@ -191,8 +190,10 @@ class ImplicitSolver:
         self.gravity[None] = effects.gravity or (0.0, 0.0, 0.0)
         self.ground[None] = effects.ground or 0.0
         self.friction[None] = effects.friction
-        self.model.write(self.body_pinned, np.array([int((self.model.free_np[b.vertices] == 0).any())
-                                                     for b in self.model.bodies], np.int32))
+        # the per-body inputs of the kernels, kept here and written together (write_bodies)
+        self.pinned_np = np.array([(model.free_np[b.vertices] == 0).any() for b in model.bodies], np.int32)
+        self.awake_np = np.ones(len(model.bodies), np.int32)
+        self.floor_np = self.speed_floor_np = np.zeros(len(model.bodies))      # set by refresh
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioner_key = None
         self.omega_key, self.omega = None, None
@@ -201,23 +202,27 @@ class ImplicitSolver:
 
     def wake(self, awake):
         """Which bodies the step moves: (bodies,) of 0 (asleep: left exactly as they are) or 1."""
-        self.model.write(self.awake, np.asarray(awake, np.int32))
+        self.awake_np = np.asarray(awake, np.int32)
+        self.write_bodies()
         self.preconditioner_key = None                        # a body that wakes has no blocks yet
+
+    def write_bodies(self):
+        """The per-body inputs (pinned, awake, round-off floors) into their fields, in one kernel."""
+        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np)
 
     def reset(self):
         """Forget everything from earlier steps: rotations, warm starts, ground contacts, sleep."""
         self.wake(np.ones(len(self.model.bodies)))
         self.reset_rotations()
         self.rotated = False
-        self.pressed.fill(0)
-        self.forget_change()
+        self.forget_change(contacts=True)
         if self.patches is not None:
             self.patches.reset()
 
-    def forget_change(self):
+    def forget_change(self, contacts=False):
         """The next step starts its solve from v_n itself: after a new state, the last step's
-        velocity change says nothing about the next one."""
-        self.change.fill(0)
+        velocity change says nothing about the next one. contacts: forget the ground's too."""
+        self.clear_history(int(contacts))
         self.preconditioner_key = None                        # the blocks are for other rotations
         self.turned = 0.0                                     # rad: most any tet turned since then
         self.change_dt = 0.0                                  # s, the dt of the step that made `change`
@@ -361,8 +366,9 @@ class ImplicitSolver:
         if (self.model.version, dt) != self.model_version:
             self.model_version = (self.model.version, dt)
             self.preconditioner_key = self.omega_key = None
-            self.model.write(self.body_floor, self.model.body_floor(ROUNDOFF * epsilon(), dt))
-            self.model.write(self.body_speed_floor, self.model.body_speed_floor(ROUNDOFF * epsilon(), dt))
+            self.floor_np = self.model.body_floor(ROUNDOFF * epsilon(), dt)
+            self.speed_floor_np = self.model.body_speed_floor(ROUNDOFF * epsilon(), dt)
+            self.write_bodies()
             if not self.model.any_corotational and self.rotated:
                 self.reset_rotations()                        # every body switched to linear: unrotate
                 self.rotated = False
@@ -1186,14 +1192,32 @@ class ImplicitSolver:
         return bad
 
     @ti.kernel
-    def body_speeds(self, v: ti.template()):
-        """body_speed[b] <- the largest |v_i|^2 over body b's vertices, (m/s)^2."""
+    def body_speeds(self, v: ti.template(), speed: ti.types.ndarray()):
+        """speed[b] <- the largest |v_i|^2 over body b's vertices, (m/s)^2 (speed: (bodies,) float64)."""
         ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_speed[b] = 0.0
+        for b in range(speed.shape[0]):
+            speed[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            ti.atomic_max(self.body_speed[self.model.vertex_body[i]], ti.cast(v[i].norm_sqr(), ti.f64))
+            ti.atomic_max(speed[self.model.vertex_body[i]], ti.cast(v[i].norm_sqr(), ti.f64))
+
+    @ti.kernel
+    def _write_bodies(self, pinned: ti.types.ndarray(), awake: ti.types.ndarray(),
+                      floor: ti.types.ndarray(), speed_floor: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
+        for b in range(pinned.shape[0]):
+            self.body_pinned[b], self.awake[b] = pinned[b], awake[b]
+            self.body_floor[b], self.body_speed_floor[b] = floor[b], speed_floor[b]
+
+    @ti.kernel
+    def clear_history(self, contacts: ti.i32):
+        """The last step's velocity change <- 0; with contacts, which vertices the ground pressed too."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.change[i] = ti.Vector.zero(float, 3)
+            if ti.static(self.has_ground):
+                if contacts:
+                    self.pressed[i] = 0
 
     @ti.kernel
     def hold(self, v: ti.template(), start: ti.i32, stop: ti.i32):
