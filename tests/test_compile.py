@@ -63,3 +63,31 @@ def test_init_again_with_the_same_settings_keeps_the_kernels_and_a_restart_drops
     exercise(sim)
     assert pool.made["parts"] == made + 1 and np.isfinite(sim.positions()).all()
     fem.init("cpu", "f32", restart=True)                # leave Taichi as fem.init makes it
+
+
+def test_a_functions_source_is_read_once_however_many_kernels_call_it():
+    import taichi as ti
+    from taichi.lang import kernel_impl
+
+    fem.init("cpu", "f32")
+
+    @ti.func
+    def cube(a):
+        return a * a * a
+
+    @ti.kernel
+    def sum_of_cubes(n: ti.i32) -> ti.i32:
+        total = 0
+        for i in range(n):
+            total += cube(i) + cube(i)        # two call sites, each translated
+        return total
+
+    @ti.kernel
+    def cube_of(a: ti.i32) -> ti.i32:
+        return cube(a)
+
+    before = kernel_impl.getsourcelines.cache_info()
+    assert sum_of_cubes(4) == 2 * (0 + 1 + 8 + 27) and cube_of(5) == 125
+    after = kernel_impl.getsourcelines.cache_info()
+    assert after.misses - before.misses == 3          # the two kernels and `cube`, each once
+    assert after.hits - before.hits >= 2              # `cube` at its other two call sites
