@@ -296,10 +296,12 @@ class ImplicitSolver:
         if self.two_level:
             self.prepare_patches(cM, cK, corotational)
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())   # none below round-off
-        rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, True)
         if newton:
-            self.energy(self.v0, self.x, self.v, dt)          # E_b of every body at the first iterate
+            self.energy(self.v0, self.x, self.v, dt, first=True)   # E_b of every body at the first iterate
+            rho = self.gradient_vertices(self.v0, self.v, dt, tolerance, 1)   # its tet terms came with E
             self.accept(self.v, 1)
+        else:
+            rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, True)
 
         newton_iters = solver_iters = halvings = 0
         settled = False
@@ -332,7 +334,7 @@ class ImplicitSolver:
                 self.energy(self.v0, self.x, self.v, dt)
             self.accept(self.v, 0)
             change = self.velocity_change(settings.newton_tolerance)
-            rho = self.gradient(self.v0, self.x, self.v, dt, tolerance, False)
+            rho = self.gradient_vertices(self.v0, self.v, dt, tolerance, 0)   # tet terms: with the last E
             if change <= 1.0:                                 # every body's velocity has settled
                 settled = True
                 break
@@ -623,21 +625,27 @@ class ImplicitSolver:
         moving=0: v is 0 (the step's first iterate, no ground), so the damping term is too."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
-            W = self.model.rest_volume[e] * self.tet_awake(e)       # a sleeping body's tets add nothing
-            self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
-            if ti.static(self.has_stiffness_damping) and moving:
-                B = self.damping_Bm(e)
-                dF = self.edges(v, e) @ B
-                eps = 0.5 * (dF + dF.transpose())
-                P = linear_stress(eps, self.model.mu(e), self.model.lam(e))
-                f = corner_forces(-dt * self.stiffness_damping[None] * P, B, W)
-                for k in ti.static(range(4)):
-                    self.corner[4 * e + k] += f[k]
+            self.gradient_tet(x, v, dt, moving, e)
+
+    @ti.func
+    def gradient_tet(self, x: ti.template(), v: ti.template(), dt, moving, e):
+        W = self.model.rest_volume[e] * self.tet_awake(e)           # a sleeping body's tets add nothing
+        self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
+        if ti.static(self.has_stiffness_damping) and moving:
+            B = self.damping_Bm(e)
+            dF = self.edges(v, e) @ B
+            eps = 0.5 * (dF + dF.transpose())
+            P = linear_stress(eps, self.model.mu(e), self.model.lam(e))
+            f = corner_forces(-dt * self.stiffness_damping[None] * P, B, W)
+            for k in ti.static(range(4)):
+                self.corner[4 * e + k] += f[k]
 
     @ti.kernel
-    def energy_tets(self, x: ti.template(), v: ti.template(), dt: float):
+    def energy_tets(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
         """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K_n v_b, summed in float64 (J), a chunk of
-        tets at a time (as in body_energy)."""
+        tets at a time (as in body_energy); corner <- the tet terms of grad E at (x, v), in the
+        same pass: a trial iterate the line search accepts needs its gradient next.
+        moving=0: v is 0 (as in gradient_corners), so the damping terms are too."""
         n = self.model.tet_count[None]
         ti.loop_config(serialize=self.serial_tets)
         for c in range((n + TET_CHUNK - 1) // TET_CHUNK):
@@ -647,9 +655,10 @@ class ImplicitSolver:
                     if body >= 0:
                         self.body_E[body] += total
                     body, total = self.model.tet_body[e], 0.0
+                self.gradient_tet(x, v, dt, moving, e)
                 awake = ti.cast(self.tet_awake(e), ti.f64)
                 total += awake * self.elastic_energy(x, e)
-                if ti.static(self.has_stiffness_damping):
+                if ti.static(self.has_stiffness_damping) and moving:
                     W = ti.cast(self.model.rest_volume[e], ti.f64)
                     mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
                     dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm(e), ti.f64)
@@ -801,11 +810,12 @@ class ImplicitSolver:
                 e -= dt * m * u.dot(ti.cast(self.gravity_vector(), ti.f64))
             self.body_E[self.model.vertex_body[i]] += e
 
-    def energy(self, v0, x, v, dt):
+    def energy(self, v0, x, v, dt, first=False):
         """E_b(v) of every body at x = x_n + dt v into body_E (J, float64), with the rotations at
-        x already extracted. E = sum_b E_b is what a Newton iteration minimises."""
+        x already extracted, and the tet terms of grad E there (gradient_vertices finishes it).
+        E = sum_b E_b is what a Newton iteration minimises."""
         self.energy_vertices(v0, v, dt)
-        self.energy_tets(x, v, dt)
+        self.energy_tets(x, v, dt, int(not first or self.has_ground))   # first: v = 0 off the ground
 
     @ti.kernel
     def velocity_change(self, tolerance: ti.f64) -> ti.f64:

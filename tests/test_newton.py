@@ -52,8 +52,8 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
     energy, accept, step = solver.energy, solver.accept, solver.step
     paths, last = [], []        # per step: E of the start iterate, then of each accepted iterate
 
-    def logged_energy(*args):
-        energy(*args)
+    def logged_energy(*args, **kwargs):
+        energy(*args, **kwargs)
         value = solver.body_E.to_numpy()[:1]              # E_b of the scene's one body
         if not paths[-1]:
             paths[-1].append(value)
@@ -74,6 +74,24 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
     assert sum(len(path) - 1 for path in paths) >= len(paths)   # Newton iterations were accepted
     for path in paths:
         assert all(b <= a for a, b in zip(path, path[1:])), path   # noqa: (1,) arrays
+
+
+def test_the_energy_pass_leaves_the_gradient_of_its_iterate(f64):
+    """The line search's energy pass also stores the tet terms of grad E (a trial it accepts
+    needs them next): the same numbers as the gradient's own pass, stiffness damping included."""
+    sim = fem.Simulation(spinning_incompressible())
+    for _ in range(2):
+        sim.step()
+    solver, dt = sim.solver, sim.settings.dt
+    solver.energy(solver.v0, solver.x, solver.v, dt)
+    fused = solver.corner.to_numpy()
+    solver.gradient_corners(solver.x, solver.v, dt, 1)
+    alone = solver.corner.to_numpy()
+    solver.gradient_corners(solver.x, solver.v, dt, 0)
+    undamped = solver.corner.to_numpy()
+    assert np.abs(alone - undamped).max() > 1e-3 * np.abs(alone).max()     # the damping term counts
+    # two kernels, compiled apart: their rounding differs (near-incompressible: lambda = 5000 mu)
+    np.testing.assert_allclose(fused, alone, rtol=0, atol=1e-9 * np.abs(alone).max())
 
 
 def two_bodies(quiet_only=False, tolerance=1e-4, newton_tolerance=1e-3):
