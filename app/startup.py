@@ -5,11 +5,15 @@
     second  in one process, a second Simulation of the scene made after the first one is
             dropped, to the end of its first step (its kernels are compiled already, fem/pool.py)
     beside  the same while the first one is still alive: it needs parts of its own
+    view    `main.py view SCENE` on a warm cache: to its first frame (the scene drawn at rest)
+            and to its first stepped frame, on $DISPLAY or a virtual display (Xvfb)
 
 Medians of `repeats` runs, wall seconds. The cold runs each use a new empty cache folder.
 """
 
+import contextlib
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -88,3 +92,68 @@ def resting_cost(scene_name="epcot", steps=20):
         costs.append(1e3 * (time.perf_counter() - start) / steps)
         del sim
     return tuple(costs)
+
+
+def view_seconds(scene_name, repeats=3, display=None, timeout=120):
+    """{"view_first_s", "view_stepped_s"}: medians over `repeats` warm runs of `main.py view
+    SCENE`, seconds from the launch to its first frame (the scene drawn at rest, the window's
+    first stats row) and to its first stepped frame (the second row). A first run fills the
+    cache. display: an X display; None: $DISPLAY, else a virtual one when Xvfb is installed.
+    {} when no window can open here."""
+    with _a_display(display) as display:
+        if display is None:
+            return {}
+        env = dict(os.environ, DISPLAY=display)
+        runs = [_first_frames(scene_name, env, timeout) for _ in range(repeats + 1)][1:]
+    if None in runs:
+        return {}
+    return {"view_first_s": statistics.median(r[0] for r in runs),
+            "view_stepped_s": statistics.median(r[1] for r in runs)}
+
+
+def _first_frames(scene_name, env, timeout):
+    """(seconds to the window's first stats row, to its second), or None when the window ended first."""
+    with tempfile.TemporaryDirectory() as folder:
+        stats = Path(folder) / "view.jsonl"
+        start = time.perf_counter()
+        window = subprocess.Popen([sys.executable, str(ROOT / "main.py"), "view", scene_name,
+                                   "--stats", str(stats)], cwd=folder, env=env,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        seen = []
+        try:
+            while len(seen) < 2 and time.perf_counter() - start < timeout:
+                if window.poll() is not None:
+                    return None
+                # the rows stream into a temporary file (app/files.py) until the window closes
+                rows = sum(part.read_text().count("\n") for part in Path(folder).glob(".view.jsonl.*.part"))
+                seen += [time.perf_counter() - start] * (min(rows, 2) - len(seen))
+                time.sleep(0.005)
+        finally:
+            window.terminate()
+            window.wait(30)
+        return tuple(seen) if len(seen) == 2 else None
+
+
+@contextlib.contextmanager
+def _a_display(display):
+    """Yields an X display to open windows on: `display`, $DISPLAY, a virtual one, or None."""
+    from app.display import display_problem
+
+    if display or display_problem() is None:
+        yield display or os.environ.get("DISPLAY")
+        return
+    if shutil.which("Xvfb") is None:
+        yield None
+        return
+    read, write = os.pipe()
+    server = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", "1280x720x24",
+                               "-nolisten", "tcp"], pass_fds=[write],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(write)
+    with os.fdopen(read) as f:
+        number = f.readline().strip()
+    try:
+        yield f":{number}" if number else None
+    finally:
+        server.terminate()
+        server.wait(10)

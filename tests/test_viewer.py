@@ -312,3 +312,11 @@ def test_view_without_a_display_is_one_clear_error():
                              capture_output=True, text=True, timeout=120)
         assert run.returncode == 2
         assert run.stderr.startswith("error: view: no") and len(run.stderr.splitlines()) == 1
+
+
+def test_the_benchmark_times_the_windows_first_frames(display):
+    from app import startup
+
+    numbers = startup.view_seconds("cube86", repeats=1, display=display)
+    assert set(numbers) == {"view_first_s", "view_stepped_s"}
+    assert 0 < numbers["view_first_s"] < numbers["view_stepped_s"]
