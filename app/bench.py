@@ -662,11 +662,13 @@ def markdown(results):
 
 # What limits each speed target that a run does not meet (profiles taken on the 2-core machine).
 LIMITS = {
-    "warm": "a warm start is Python's imports (about 0.33 s), Taichi's frontend translating every kernel "
-            "epcot's first Newton step and its summary run (about 1 s, the gradient, the rotations, PCG and "
-            "the summary's measurements about 0.15 s each: it translates even when the offline cache then "
-            "supplies the compiled code), then loading the cached kernels, building the mesh and the step "
-            "itself; fewer, smaller kernels would cut the first two",
+    "warm": "a warm start of epcot (profiled): Python's imports 0.3 s, starting Taichi 0.17 s, building the "
+            "Simulation 0.3 s, the first Newton step 1.45 s and the summary 0.25 s. Of these about 2 s are "
+            "kernels, half in each of two stages that run even when the offline cache has the kernel: "
+            "Taichi's frontend translating its Python (the gradient and energy, the rotations, PCG and the "
+            "summary's measurements 0.15 to 0.3 s each), and loading it: Taichi 1.7's CPU backend caches "
+            "LLVM IR, not machine code, so LLVM optimises and compiles each of the 40 kernels again, about "
+            "15 ms for the smallest and 0.14 s for PCG's. 2 s would need far fewer, smaller kernels",
     "rotation": "on box50k, reading a tet's corners and Bm, forming F and writing Bm R^T and the quaternion "
                 "alone takes about 12 ns/tet on 2 cores; started from the last step's turn, one certified "
                 "Newton step on the polar decomposition finds R (two from the last R alone), and its scalar "
@@ -682,9 +684,15 @@ LIMITS = {
               "Jacobi's 0.9); the rest is the step's fixed work, about 6 ms: rotations 2.5, the first product "
               "and the start of PCG 1, the gradient 0.9, the block-Jacobi build 0.3 (1 ms, one step in four), "
               "and a dozen small passes; the machine's spread between runs is about 10 %",
-    "newton": "2.35 Newton iterations a step at 1e-3, each with its own PCG solve, a line-search trial with its "
-              "own rotation extraction (7.9 ms of rotations a step), energy sums in float64 and a new "
-              "gradient: about 34 ms. Newton buys the promise that energy never rises, not accuracy",
+    "newton": "about 2.4 to 2.9 Newton iterations a step at 1e-3, each with its own PCG solve and a "
+              "line-search trial with its own rotation extraction, energy sums in float64 and the gradient "
+              "(one pass since this session). Kernel profile of a box50k Newton step (about 33 ms): rotations "
+              "8.2 ms (three passes), energy and gradient 8.4, PCG 10 (about 10 iterations), the first "
+              "products 2.9, the block-Jacobi build 1, the energy before and after 1.1. Tried: blocks "
+              "rebuilt only when stale (as the one-solve step does) need 14.7 -> 22.3 PCG iterations a step "
+              "on epcot, as the twist term moves with the stretch; a tighter forcing term (0.03) saves half "
+              "a Newton iteration on box50k and costs as much in PCG. Newton buys the promise that energy "
+              "never rises, not accuracy",
     "stiff": "as box50k: iterations (about 11, from 41 with block Jacobi) and the step's fixed work",
     "direct": "the matrix-free step itself (see box50k above); PARDISO's refactorisation on 2 cores is "
               "what a user would get, symbolic analysis reused",
@@ -694,7 +702,8 @@ LIMITS = {
               "state, CG's and Newton's: 168 B, 49 B/tet on epcot); fields sized to a capacity (5 % unused on "
               "epcot); on large meshes the two-level preconditioner's dense coarse inverse (up to 768 x 768: "
               "2.4 MB in f32, 48 B/tet on box50k). 200 B/tet would need Bm R^T recomputed in every CG "
-              "product or the gather's buffer replaced by atomics, both slower",
+              "product or the gather's buffer replaced by atomics: both slower, and atomics would add in a "
+              "different order on every run, where runs are now reproducible bit for bit",
 }
 
 

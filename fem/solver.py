@@ -629,6 +629,7 @@ class ImplicitSolver:
 
     @ti.func
     def gradient_tet(self, x: ti.template(), v: ti.template(), dt, moving, e):
+        """corner <- tet e's terms of grad E (gradient_corners)."""
         W = self.model.rest_volume[e] * self.tet_awake(e)           # a sleeping body's tets add nothing
         self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
         if ti.static(self.has_stiffness_damping) and moving:

@@ -170,3 +170,17 @@ def test_bench_compares_the_preconditioners_and_the_stiff_bar(bench_output):
     assert stiff["jacobi"]["iters_per_step"] > soft["jacobi"]["iters_per_step"]   # 10 x E: more iterations
     md = (bench_output / "results.md").read_text()
     assert "## Preconditioners" in md and "box80, E 1e+06 Pa, nu 0.4" in md and "stiff bar (box80" in md
+
+
+def test_the_targets_table_gives_each_start_up_number_its_verdict():
+    startup = {"warm_s": 2.5, "cold_s": 8.0, "second_s": 0.04, "beside_s": 6.0,
+               "view_first_s": 1.6, "view_stepped_s": 3.2, "resting_ms": (0.05, 4.0)}
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in bench.targets({"scenes": [], "startup": startup})
+            if line.startswith("| ") and " | " in line}
+    assert "| 2.5 s | not met |" in rows["start-up, warm cache"]
+    assert bench.LIMITS["warm"] in rows["start-up, warm cache"]
+    assert "| 0.04 s | met |" in rows["second Simulation, same kind, to its first step"]
+    assert "| 1.6 s | met |" in rows["`view`, first frame (the scene at rest), warm cache"]
+    assert "| 3.2 s | reported |" in rows["`view`, first stepped frame, warm cache"]
+    without = bench.targets({"scenes": [], "startup": {"warm_s": 2.5}})
+    assert any(line.startswith("| `view`, first frame") and "| – | not measured |" in line for line in without)
