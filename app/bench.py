@@ -684,15 +684,14 @@ LIMITS = {
               "Jacobi's 0.9); the rest is the step's fixed work, about 6 ms: rotations 2.5, the first product "
               "and the start of PCG 1, the gradient 0.9, the block-Jacobi build 0.3 (1 ms, one step in four), "
               "and a dozen small passes; the machine's spread between runs is about 10 %",
-    "newton": "about 2.4 to 2.9 Newton iterations a step at 1e-3, each with its own PCG solve and a "
-              "line-search trial with its own rotation extraction, energy sums in float64 and the gradient "
-              "(one pass since this session). Kernel profile of a box50k Newton step (about 33 ms): rotations "
-              "8.2 ms (three passes), energy and gradient 8.4, PCG 10 (about 10 iterations), the first "
-              "products 2.9, the block-Jacobi build 1, the energy before and after 1.1. Tried: blocks "
-              "rebuilt only when stale (as the one-solve step does) need 14.7 -> 22.3 PCG iterations a step "
-              "on epcot, as the twist term moves with the stretch; a tighter forcing term (0.03) saves half "
-              "a Newton iteration on box50k and costs as much in PCG. Newton buys the promise that energy "
-              "never rises, not accuracy",
+    "newton": "2.35 Newton iterations a step at 1e-3, each with its own PCG solve and a line-search trial "
+              "with its own rotation extraction, then energy and gradient in one pass (float64 sums). Kernel "
+              "profile of a box50k Newton step (about 33 ms): rotations 8.2 ms (three passes), energy and "
+              "gradient 8.4, PCG 10 (about 10 iterations), the first products 2.9, the block-Jacobi build 1, "
+              "the energy before and after 1.1. Tried: blocks rebuilt only when stale (as the one-solve step "
+              "does) need 14.7 -> 22.3 PCG iterations a step on epcot, as the twist term moves with the "
+              "stretch; a tighter forcing term (0.03) saves half a Newton iteration on box50k and costs as "
+              "much in PCG. Newton buys the promise that energy never rises, not accuracy",
     "stiff": "as box50k: iterations (about 11, from 41 with block Jacobi) and the step's fixed work",
     "direct": "the matrix-free step itself (see box50k above); PARDISO's refactorisation on 2 cores is "
               "what a user would get, symbolic analysis reused",

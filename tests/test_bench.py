@@ -184,3 +184,10 @@ def test_the_targets_table_gives_each_start_up_number_its_verdict():
     assert "| 3.2 s | reported |" in rows["`view`, first stepped frame, warm cache"]
     without = bench.targets({"scenes": [], "startup": {"warm_s": 2.5}})
     assert any(line.startswith("| `view`, first frame") and "| – | not measured |" in line for line in without)
+
+
+def test_the_committed_benchmark_page_is_its_json_rendered():
+    """docs/benchmark.md is `markdown` of docs/benchmark.json with today's texts (the targets'
+    limits among them): re-render it (bench.markdown) whenever they change."""
+    results = json.loads((bench.DOCS / "benchmark.json").read_text())
+    assert bench.markdown(results) == (bench.DOCS / "benchmark.md").read_text()
