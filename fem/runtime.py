@@ -72,7 +72,7 @@ def remember_sources():
     each is read once."""
     from taichi.lang import kernel_impl
 
-    if isinstance(kernel_impl.getsourcelines, functools._lru_cache_wrapper):
+    if hasattr(kernel_impl.getsourcelines, "cache_info"):      # remembered already
         return
     remember = functools.lru_cache(maxsize=None)
     kernel_impl.getsourcefile = remember(kernel_impl.getsourcefile)

@@ -629,9 +629,11 @@ class ImplicitSolver:
 
     @ti.func
     def gradient_tet(self, x: ti.template(), v: ti.template(), dt, moving, e):
-        """corner <- tet e's terms of grad E (gradient_corners)."""
+        """corner <- tet e's terms of grad E (gradient_corners). Returns the Bm R_n^T its damping
+        term used (0 without one), for energy_tets to reuse."""
         W = self.model.rest_volume[e] * self.tet_awake(e)           # a sleeping body's tets add nothing
         self.store_corners(e, corner_forces(-dt * self.elastic_stress(x, e), self.rotated_Bm[e], W))
+        B = ti.Matrix.zero(float, 3, 3)
         if ti.static(self.has_stiffness_damping) and moving:
             B = self.damping_Bm(e)
             dF = self.edges(v, e) @ B
@@ -640,6 +642,7 @@ class ImplicitSolver:
             f = corner_forces(-dt * self.stiffness_damping[None] * P, B, W)
             for k in ti.static(range(4)):
                 self.corner[4 * e + k] += f[k]
+        return B
 
     @ti.kernel
     def energy_tets(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
@@ -656,13 +659,13 @@ class ImplicitSolver:
                     if body >= 0:
                         self.body_E[body] += total
                     body, total = self.model.tet_body[e], 0.0
-                self.gradient_tet(x, v, dt, moving, e)
+                B = self.gradient_tet(x, v, dt, moving, e)
                 awake = ti.cast(self.tet_awake(e), ti.f64)
                 total += awake * self.elastic_energy(x, e)
                 if ti.static(self.has_stiffness_damping) and moving:
                     W = ti.cast(self.model.rest_volume[e], ti.f64)
                     mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
-                    dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(self.damping_Bm(e), ti.f64)
+                    dF = ti.cast(self.edges(v, e), ti.f64) @ ti.cast(B, ti.f64)
                     beta = ti.cast(dt * self.stiffness_damping[None], ti.f64)
                     total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
             if body >= 0:
