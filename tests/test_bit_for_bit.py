@@ -1,0 +1,101 @@
+"""A refactoring changes no result: hashes of x and v after 100 steps, stored once, compared bit for bit.
+
+Every built-in scene with both methods, both step kinds and both precisions, and every
+hard-case group's end state, is hashed (sha256 of the float arrays' bytes) and compared with
+`step_hashes.json`. The compiled kernels' arithmetic depends on the processor (LLVM picks
+vector instructions and fused multiply-adds for it) and on Taichi's version, so the file keys
+its hashes by both; on another machine the test skips and says how to record them there.
+
+A change that alters results on purpose records them again, in a commit of its own that says
+why and by how much:
+
+    RECORD_STEP_HASHES=1 .venv/bin/python -m pytest tests/test_bit_for_bit.py -n 0
+"""
+
+import hashlib
+import json
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+import pytest
+import taichi as ti
+
+import fem
+from scenes import builtin_scenes, load_scene
+from tools.cases import build_scene, groups, mirror_inverted
+
+HASHES = Path(__file__).with_name("step_hashes.json")
+STEPS = 100
+RECORD = os.environ.get("RECORD_STEP_HASHES") == "1"
+
+
+def machine():
+    """What the compiled arithmetic depends on: the processor's model and vector features, Taichi's version."""
+    model, features = platform.machine(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name":
+                model = value.strip()
+            elif key.strip() == "flags":
+                features = {f for f in value.split() if f.startswith(("avx", "fma", "sse4"))}
+    except OSError:
+        pass
+    return f"{model} [{' '.join(sorted(features))}] taichi {'.'.join(map(str, ti.__version__))}"
+
+
+def digest(sim):
+    """sha256 of the positions and velocities as stored (the fields' own precision)."""
+    h = hashlib.sha256()
+    for array in (sim.state.x.to_numpy(), sim.state.v.to_numpy()):
+        h.update(np.ascontiguousarray(array[:sim.model.n_vertices]).tobytes())
+    return h.hexdigest()
+
+
+def scene_hashes():
+    """{"scene/method/step": hash} after STEPS steps of every built-in scene (fem.init first)."""
+    out = {}
+    for name in builtin_scenes():
+        scene = load_scene(name)
+        for method in ("linear", "corotational"):
+            for step in ("newton", "single"):
+                sim = fem.Simulation(scene, method=method, step=step)
+                for _ in range(STEPS):
+                    sim.step()
+                out[f"{name}/{method}/{step}"] = digest(sim)
+    return out
+
+
+def hard_case_hashes():
+    """{"hard cases dt .../steps": hash} of every hard-case group's end state."""
+    out = {}
+    for cases in groups():
+        scene, layout = build_scene(cases)
+        sim = fem.Simulation(scene)
+        mirror_inverted(sim, layout)
+        for _ in range(cases[0].steps):
+            sim.step()
+        out[f"{scene.name}"] = digest(sim)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_results_are_the_recorded_ones_bit_for_bit(precision):
+    fem.init("cpu", precision)
+    got = {**scene_hashes(), **hard_case_hashes()}
+    stored = json.loads(HASHES.read_text()) if HASHES.exists() else {}
+    key = f"{machine()} {precision}"
+    if RECORD:
+        stored[key] = got
+        HASHES.write_text(json.dumps(stored, indent=1, sort_keys=True) + "\n")
+        return
+    if key not in stored:
+        pytest.skip(f"no hashes recorded for {key!r} (record them with RECORD_STEP_HASHES=1, "
+                    "see this file's docstring)")
+    expected = stored[key]
+    changed = sorted(name for name in expected if got.get(name) != expected[name])
+    assert sorted(got) == sorted(expected)
+    assert not changed, f"{len(changed)} of {len(expected)} end states changed: {changed}"
