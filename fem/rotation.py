@@ -27,12 +27,21 @@ from fem.elastic import is_finite
 NEWTON_ITERATIONS = 4
 
 
-def angle_tolerance():
-    """Accepted error of a Newton-extracted R (rad), a little above the float type's rounding.
+def single_precision():
+    """True when the fields are float32 (read on the Python side when a kernel compiles)."""
+    return ti.lang.impl.get_runtime().default_fp == ti.f32
 
-    Read on the Python side when a kernel compiles, after Taichi's float type is fixed.
-    """
-    return 1e-5 if ti.lang.impl.get_runtime().default_fp == ti.f32 else 1e-12
+
+def real_type(dtype):
+    """Taichi's float type for `dtype` (Python's float: the fields' own, f32 or f64)."""
+    return ti.lang.impl.get_runtime().default_fp if dtype is float else dtype
+
+
+def angle_tolerance(dtype=None):
+    """Accepted error of a Newton-extracted R (rad), a little above the rounding of `dtype`
+    (None: the fields' float type, read when a kernel compiles, after Taichi's is fixed)."""
+    single = real_type(float if dtype is None else dtype) == ti.f32
+    return 1e-5 if single else 1e-12
 
 
 @ti.func
@@ -62,20 +71,37 @@ def polar_rotation(F):
     equal: R barely defined), the SVD's rotation as it is. F is scaled to entries
     of size 1 first: R does not depend on its size, and the SVD squares it (in
     f32, F^T F overflows beyond 1e19).
+
+    With float32 fields the whole routine runs in float64: where two singular values are
+    below about 1e-4 of the largest, float32's SVD and Newton steps both lose R (measured:
+    tens of degrees off on 1 in 50 random F of that kind, tests/test_rotation.py), while
+    the float32 rounding of F itself moves R by well under a degree. It is the fallback
+    of a few tets, so its cost does not show.
     """
+    R = ti.Matrix.identity(float, 3)
+    if ti.static(single_precision()):
+        R = ti.cast(polar_rotation_in(ti.cast(F, ti.f64), ti.f64), float)
+    else:
+        R = polar_rotation_in(F, float)
+    return R
+
+
+@ti.func
+def polar_rotation_in(F, dtype: ti.template()):
+    """polar_rotation(F) with F and every step of the arithmetic in `dtype`."""
     size = ti.abs(F).max()
     G = F
     if size > 0:
         G = F / size
-    R = svd_rotation(G)
-    q, converged = newton_rotation(G, quaternion_of(R))
+    R = svd_rotation(G, dtype)
+    q, converged = newton_rotation(G, quaternion_of(R, dtype), NEWTON_ITERATIONS, dtype)
     if converged:
         R = quaternion_matrix(q)
     return R
 
 
 @ti.func
-def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
+def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS, dtype: ti.template() = float):
     """(q, converged): the quaternion q moved towards the rotation of F by Newton steps.
 
     With R = R(q), the ascent axis omega = sum_i r_i x f_i (columns of R and F)
@@ -97,17 +123,17 @@ def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
     F, starts up to 1.5 rad off), the true error stays below 0.1 of the estimate.
     Not converged: H not positive definite at some iterate (a start more than
     about 90 deg off, where a Newton step heads anywhere), values not finite,
-    or max_iterations steps used up.
+    or max_iterations steps used up. dtype: the float type of F, q and the arithmetic.
     """
     converged = False
     for _ in range(max_iterations):
         R = quaternion_matrix(q)
-        omega = ti.Vector.zero(float, 3)
+        omega = ti.Vector.zero(dtype, 3)
         for i in ti.static(range(3)):
             omega += ti.Vector([R[0, i], R[1, i], R[2, i]]).cross(ti.Vector([F[0, i], F[1, i], F[2, i]]))
         B = F @ R.transpose()
         S = 0.5 * (B + B.transpose())
-        H = S.trace() * ti.Matrix.identity(float, 3) - S
+        H = S.trace() * ti.Matrix.identity(dtype, 3) - S
         A = symmetric_adjugate(H)
         det_H = H[0, 0] * A[0, 0] + H[0, 1] * A[0, 1] + H[0, 2] * A[0, 2]
         if not (H[0, 0] > 0 and A[2, 2] > 0 and det_H > 0):   # leading minors > 0: H positive definite
@@ -116,7 +142,7 @@ def newton_rotation(F, q, max_iterations: ti.template() = NEWTON_ITERATIONS):
         # q <- p q with p = (d/2, 1) / |.|: a turn by 2 atan(|d|/2) = |d| + O(|d|^3) about d
         q = quaternion_product(ti.Vector([0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 1.0]), q).normalized()
         d2 = d.norm_sqr()
-        if H.trace() ** 3 / (8.0 * det_H) * d2 * ti.sqrt(d2) < ti.static(angle_tolerance()):
+        if H.trace() ** 3 / (8.0 * det_H) * d2 * ti.sqrt(d2) < ti.static(angle_tolerance(dtype)):
             converged = True
             break
     return q, converged
@@ -131,16 +157,17 @@ def symmetric_adjugate(H):
 
 
 @ti.func
-def svd_rotation(F):
+def svd_rotation(F, dtype: ti.template() = float):
     """U V^T from the SVD F = U S V^T, det = +1 (Irving et al. 2004); the identity for non-finite F.
+    dtype: the float type of F and of the SVD's arithmetic.
 
     Taichi's SVD returns proper rotations U, V and puts a reflection into the
     smallest singular value, which is the inversion-safe choice; the determinant
     check keeps that promise if a future SVD does not.
     """
-    R = ti.Matrix.identity(float, 3)
+    R = ti.Matrix.identity(dtype, 3)
     if is_finite(F.sum()):
-        U, S, V = ti.svd(F)
+        U, S, V = ti.svd(F, ti.f64) if ti.static(dtype == ti.f64) else ti.svd(F)
         if (U @ V.transpose()).determinant() < 0:
             k = 0
             for j in ti.static(range(1, 3)):
@@ -181,15 +208,15 @@ def conjugate(q):
 
 
 @ti.func
-def quaternion_of(R):
+def quaternion_of(R, dtype: ti.template() = float):
     """Unit quaternion (x, y, z, w) of a rotation matrix R (Shepperd 1978).
 
     Each component's square is a sum of diagonal entries; the largest one is
     taken from its square root, so the divisions that give the other three stay
-    well away from zero.
+    well away from zero. dtype: the float type of R.
     """
     t = R.trace()
-    q = ti.Vector.zero(float, 4)
+    q = ti.Vector.zero(dtype, 4)
     if t >= R[0, 0] and t >= R[1, 1] and t >= R[2, 2]:           # w largest
         r = ti.sqrt(1.0 + t)
         s = 0.5 / r
