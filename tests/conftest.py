@@ -1,6 +1,5 @@
 """Shared test fixtures: Taichi on the CPU, and small scenes built in Python."""
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -8,11 +7,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 CGGS = ROOT.parent / "shared" / "cggs"
-sys.path.insert(0, str(ROOT))
 
 import fem  # noqa: E402
 from fem.scene import Body, Effects, Material, Scene, SolverSettings  # noqa: E402
-from tools.cases import cube  # noqa: E402
+from scenes.hard_cases import cube  # noqa: E402
 
 
 @pytest.fixture(scope="module")
