@@ -5,12 +5,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import fem
+from fem.scene import Body, Effects, Material, Scene, SolverSettings
+from scenes.hard_cases import cube
+
 ROOT = Path(__file__).resolve().parents[1]
 CGGS = ROOT.parent / "shared" / "cggs"
-
-import fem  # noqa: E402
-from fem.scene import Body, Effects, Material, Scene, SolverSettings  # noqa: E402
-from scenes.hard_cases import cube  # noqa: E402
 
 
 @pytest.fixture(scope="module")
