@@ -1,4 +1,20 @@
-"""App layer: the command line, renderers, camera and overlays that read the engine's state."""
+"""App layer: the command line, the window, the exporter and the benchmark, which read the engine's state.
+
+Rooms by role, each importing only downwards (tests/test_layout.py checks it):
+
+    cli.py       the command line (`main.py`, `softfem`): parses, checks outputs, dispatches
+    commands/    one module per command: simulate, export, view, bench, figures
+    render/      pictures of a frame: camera, the renderers (base, GGUI, software), colours, overlays
+    window/      the interactive window behind `view`: the viewer, its controls and panel,
+                 picking a body and orbiting the camera
+    bench/       the benchmark behind `bench`: plan, measure, conclusions, report and plot,
+                 the direct baseline and the start-up timings
+
+The plumbing that every room uses sits here at the top, one small module each: files.py
+(atomic writes, overwrite checks, interrupts), progress.py (progress bars and log lines),
+device.py (the Taichi back end), display.py (whether a window can open). They import nothing
+from the rooms, and a sub-package of four small modules would only lengthen every import.
+"""
 
 # Exit codes of every command: done, the run failed (every step rejected), bad input
 # (one `error:` line), interrupted (Ctrl-C or SIGTERM; complete files kept).

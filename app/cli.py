@@ -268,19 +268,19 @@ def dispatch(args, parser):
         if value is not None and value != "-":
             check_output(value, option, kind)
     if args.command == "simulate":
-        from app import simulate
+        from app.commands import simulate
         return simulate.run(args)
     if args.command == "export":
-        from app import export
+        from app.commands import export
         return export.run(args)
     if args.command == "view":
-        from app import viewer
-        return viewer.run(args)
+        from app.commands import view
+        return view.run(args)
     if args.command == "bench":
-        from app import bench
+        from app.commands import bench
         return bench.run(args)
     if args.command == "figures":
-        from app import figures
+        from app.commands import figures
         return figures.run(args)
     raise AssertionError(args.command)
 

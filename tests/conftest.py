@@ -1,18 +1,16 @@
 """Shared test fixtures: Taichi on the CPU, and small scenes built in Python."""
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import fem
+from fem.scene import Body, Effects, Material, Scene, SolverSettings
+from scenes.hard_cases import cube
+
 ROOT = Path(__file__).resolve().parents[1]
 CGGS = ROOT.parent / "shared" / "cggs"
-sys.path.insert(0, str(ROOT))
-
-import fem  # noqa: E402
-from fem.scene import Body, Effects, Material, Scene, SolverSettings  # noqa: E402
-from tools.cases import cube  # noqa: E402
 
 
 @pytest.fixture(scope="module")

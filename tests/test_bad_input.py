@@ -1,4 +1,4 @@
-"""Bad files and parameters (tools/cases.py BAD_INPUTS): one `error:` line naming the file, exit 2.
+"""Bad files and parameters (tests/cases.py BAD_INPUTS): one `error:` line naming the file, exit 2.
 
 Most run `main.main` in this process (the error comes before Taichi compiles anything); a few
 run `python main.py simulate` for real to check the exit code and that no traceback leaks.
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from tools.cases import BAD_INPUTS, ROOT, run_bad_input
+from cases import BAD_INPUTS, ROOT, run_bad_input
 
 BY_NAME = {case.name: case for case in BAD_INPUTS}
 

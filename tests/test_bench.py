@@ -12,12 +12,13 @@ from tqdm import tqdm
 
 import fem
 import main
-from app import bench
+from app.bench import conclusions, measure, plan, report
+from app.commands import bench
 
 
 def run_bench(tmp_path, *extra, precision="f64"):
     args = main.build_parser().parse_args(["bench", "--out", str(tmp_path), "--precision", precision, *extra])
-    return bench.run(args, plan=bench.TEST)
+    return bench.run(args, plan=plan.TEST)
 
 
 @pytest.fixture(scope="module")
@@ -45,17 +46,17 @@ def test_bench_has_every_variant_once_with_an_error(bench_output):
     scene, rows = rows_of(bench_output)
     keys = [(r["method"], r["solver"], r["step"], r["dt_factor"], r["tolerance"], r["iterations"], r.get("backend"))
             for r in rows]
-    assert len(set(keys)) == len(keys) == len(bench.REFERENCES) + len(bench.variants())
+    assert len(set(keys)) == len(keys) == len(plan.REFERENCES) + len(plan.variants())
     for step in ("newton", "single"):
-        for f in bench.DT_FACTORS:
-            assert ("corotational", "pcg", step, f, bench.BASELINE_TOLERANCE, None, None) in keys
-        for tol in bench.PCG_TOLERANCES:
+        for f in plan.DT_FACTORS:
+            assert ("corotational", "pcg", step, f, plan.BASELINE_TOLERANCE, None, None) in keys
+        for tol in plan.PCG_TOLERANCES:
             assert ("corotational", "pcg", step, 1, tol, None, None) in keys
     linear_pcg = [k for k in keys if k[:2] == ("linear", "pcg")]
-    assert len(linear_pcg) == len(bench.DT_FACTORS) + len(bench.PCG_TOLERANCES) - 1   # not once per step kind
+    assert len(linear_pcg) == len(plan.DT_FACTORS) + len(plan.PCG_TOLERANCES) - 1   # not once per step kind
     for method in ("linear", "corotational"):
-        assert len([k for k in keys if k[:2] == (method, "jacobi")]) == len(bench.JACOBI_ITERATIONS)
-        for backend in bench.direct_backends():   # the fastest installed, and SuperLU
+        assert len([k for k in keys if k[:2] == (method, "jacobi")]) == len(plan.JACOBI_ITERATIONS)
+        for backend in plan.direct_backends():   # the fastest installed, and SuperLU
             assert (method, "direct", "single", 1, None, None, backend) in keys
     assert scene["checkpoints"] == [0.08, 0.2]
     for row in rows:
@@ -78,7 +79,7 @@ def test_errors_shrink_as_dt_shrinks_first_order(bench_output):
     scene, rows = rows_of(bench_output)
     for step in ("newton", "single"):
         axis = sorted((r for r in rows if r["method"] == "corotational" and r["solver"] == "pcg" and r["step"] == step
-                       and r["tolerance"] == bench.BASELINE_TOLERANCE), key=lambda r: r["dt"])
+                       and r["tolerance"] == plan.BASELINE_TOLERANCE), key=lambda r: r["dt"])
         errors = [r["errors"]["0.2"] for r in axis]
         assert errors == sorted(errors) and len(set(errors)) == len(errors)
         constants = [e / (r["dt"] - scene["reference_dt"]) for e, r in zip(errors, axis)]
@@ -109,14 +110,14 @@ def test_bench_errors_measure_physics(bench_output):
 def test_headline_numbers_are_the_tables(bench_output):
     results = json.loads((bench_output / "results.json").read_text())
     numbers, (scene,) = results["headline_numbers"], results["scenes"]
-    newton, single = (bench.baseline(scene, "corotational", step) for step in ("newton", "single"))
+    newton, single = (conclusions.baseline(scene, "corotational", step) for step in ("newton", "single"))
     assert numbers["newton_over_single_time"] == pytest.approx(newton["s_per_sim_s"] / single["s_per_sim_s"])
     assert numbers["newton_over_single_error"] == pytest.approx(newton["errors"]["0.2"] / single["errors"]["0.2"])
     assert numbers["reference_floor"] == scene["reference_floor"]
-    matrix_free = bench.find(scene, method="corotational", solver="pcg", step="single", dt_factor=1,
-                             tolerance=bench.DIRECT_TOLERANCE)
-    fastest = bench.baseline(scene, "corotational", "single", "direct")
-    assert fastest["backend"] == bench.direct_backends()[0]
+    matrix_free = conclusions.find(scene, method="corotational", solver="pcg", step="single", dt_factor=1,
+                                   tolerance=plan.DIRECT_TOLERANCE)
+    fastest = conclusions.baseline(scene, "corotational", "single", "direct")
+    assert fastest["backend"] == plan.direct_backends()[0]
     assert numbers["direct_over_matrix_free"][fastest["backend"]] == pytest.approx(
         fastest["ms_median"] / matrix_free["ms_median"])
 
@@ -140,7 +141,7 @@ def test_an_f32_bench_takes_its_reference_in_f64_and_comes_back(bench_output, tm
     args = main.build_parser().parse_args(["bench", "--out", str(tmp_path), "--precision", "f32"])
     fem.init("cpu", "f32")
     with tqdm(disable=True) as progress:
-        rows, reference = bench.measure_references(bench.make_scene("box80"), [0.08], bench.TEST, args, progress)
+        rows, reference = measure.measure_references(plan.make_scene("box80"), [0.08], plan.TEST, args, progress)
     assert fem.runtime.current()["precision"] == "f32"
     assert reference["0.08"].dtype == np.float64
     _, rows64 = rows_of(bench_output)
@@ -152,8 +153,8 @@ def test_docs_writes_the_committed_pages_from_the_full_plan_only(tmp_path, monke
     monkeypatch.setattr(bench, "DOCS", tmp_path)
     (tmp_path / "benchmark.md").write_text("the last run")
     args = main.build_parser().parse_args(["bench", "--docs"])
-    assert bench.destination(args) == (tmp_path, bench.DOCS_FILES)
-    assert bench.DOCS_FILES == {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_vs_time.png"}
+    assert bench.destination(args) == (tmp_path, report.DOCS_FILES)
+    assert report.DOCS_FILES == {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_vs_time.png"}
     for extra in (["--quick"], ["--scenes", "cube86"]):
         with pytest.raises(fem.FemError, match="--docs records the full benchmark"):
             bench.destination(main.build_parser().parse_args(["bench", "--docs", *extra]))
@@ -175,19 +176,19 @@ def test_bench_compares_the_preconditioners_and_the_stiff_bar(bench_output):
 def test_the_targets_table_gives_each_start_up_number_its_verdict():
     startup = {"warm_s": 2.5, "cold_s": 8.0, "second_s": 0.04, "beside_s": 6.0,
                "view_first_s": 1.6, "view_stepped_s": 3.2, "resting_ms": (0.05, 4.0)}
-    rows = {line.split(" | ")[0].lstrip("| "): line for line in bench.targets({"scenes": [], "startup": startup})
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in report.targets({"scenes": [], "startup": startup})
             if line.startswith("| ") and " | " in line}
     assert "| 2.5 s | not met |" in rows["start-up, warm cache"]
-    assert bench.LIMITS["warm"] in rows["start-up, warm cache"]
+    assert report.LIMITS["warm"] in rows["start-up, warm cache"]
     assert "| 0.04 s | met |" in rows["second Simulation, same kind, to its first step"]
     assert "| 1.6 s | met |" in rows["`view`, first frame (the scene at rest), warm cache"]
     assert "| 3.2 s | reported |" in rows["`view`, first stepped frame, warm cache"]
-    without = bench.targets({"scenes": [], "startup": {"warm_s": 2.5}})
+    without = report.targets({"scenes": [], "startup": {"warm_s": 2.5}})
     assert any(line.startswith("| `view`, first frame") and "| – | not measured |" in line for line in without)
 
 
 def test_the_committed_benchmark_page_is_its_json_rendered():
     """docs/benchmark.md is `markdown` of docs/benchmark.json with today's texts (the targets'
-    limits among them): re-render it (bench.markdown) whenever they change."""
-    results = json.loads((bench.DOCS / "benchmark.json").read_text())
-    assert bench.markdown(results) == (bench.DOCS / "benchmark.md").read_text()
+    limits among them): re-render it (report.markdown) whenever they change."""
+    results = json.loads((report.DOCS / "benchmark.json").read_text())
+    assert report.markdown(results) == (report.DOCS / "benchmark.md").read_text()

@@ -24,7 +24,7 @@ import taichi as ti
 
 import fem
 from scenes import builtin_scenes, load_scene
-from tools.cases import build_scene, groups, mirror_inverted
+from scenes.hard_cases import build_scene, groups, mirror_inverted
 
 HASHES = Path(__file__).with_name("step_hashes.json")
 STEPS = 100

@@ -177,7 +177,7 @@ def test_set_mistakes_are_blamed_on_set_not_on_the_scene_file(here):
 
 def test_set_paths_are_relative_to_the_current_folder(here):
     import scenes
-    from tools.cases import CUBE_MESH
+    from cases import CUBE_MESH
 
     (here / "statue.mesh").write_text(CUBE_MESH)
     scene = scenes.load_scene("fertility", overrides=['body.*.mesh={file="statue.mesh"}', "body.*.scale=2.0"])

@@ -8,10 +8,10 @@ import scipy.sparse as sp
 from conftest import make_scene
 
 import fem
-from app.direct import DirectSolver
+from app.bench.direct import DirectSolver
 from fem.coarse import Patches, coarse_matrices, patches, rigid_modes
 from fem.scene import Effects, Initial, Selection, SolverSettings
-from tools.cases import cube
+from scenes.hard_cases import cube
 
 pytestmark = pytest.mark.usefixtures("f64")
 
@@ -30,7 +30,7 @@ def bar(E=1e5, nu=0.3, pinned=None, method="corotational", **solver):
 
 
 def rest_frame_matrix(sim):
-    """Q0^T A Q0 from the baseline's assembled A = cM M + cK K at rest (app/direct.py: its own code)."""
+    """Q0^T A Q0 from the baseline's assembled A = cM M + cK K at rest (app/bench/direct.py: its own code)."""
     direct = DirectSolver(sim, backend="superlu")
     A = direct.system_matrix(np.broadcast_to(np.eye(3), (sim.model.n_tets, 3, 3)))
     patch = sim.solver.patches.patch_np
@@ -197,7 +197,7 @@ def test_preconditioner_setting_is_checked_and_auto_picks_by_size():
 def test_energy_never_rises_with_the_two_level_newton_step(precision):
     """The step's promise holds whatever the preconditioner: a spinning, twisting near-incompressible
     bar, Newton step, two-level PCG at the scenes' default tolerance."""
-    from tools.cases import ENERGY_TOLERANCE
+    from scenes.hard_cases import ENERGY_TOLERANCE
     fem.init("cpu", precision)
     sim = fem.Simulation(bar(E=1e6, nu=0.45, step="newton", tolerance=1e-4))
     energies = [sim.stats()["total_energy"]]

@@ -1,4 +1,4 @@
-"""The direct baseline (app/direct.py): every backend steps as the engine's one-solve step does, and
+"""The direct baseline (app/bench/direct.py): every backend steps as the engine's one-solve step does, and
 refactorising on an analysis made once gives the factor a fresh analysis would."""
 
 import tomllib
@@ -10,8 +10,8 @@ import scipy.sparse.linalg as spla
 from conftest import ROOT, box_mesh, make_scene
 
 import fem
-from app import direct
-from app.direct import BACKENDS, DirectSolver, polar_rotations
+from app.bench import direct
+from app.bench.direct import BACKENDS, DirectSolver, polar_rotations
 from fem.scene import Effects, Initial, Selection, SolverSettings
 
 HOW_TO_INSTALL = {"pardiso": 'pypardiso is not installed (the optional extra: pip install ".[fast-direct]")',

@@ -1,11 +1,12 @@
-"""The promise of the step: total energy never rises, on every hard case (tools/cases.py),
+"""The promise of the step: total energy never rises, on every hard case (scenes/hard_cases.py),
 at every time step of ENERGY_DTS, with linear and corotational bodies, in f32 and f64."""
 
 import numpy as np
 import pytest
 
 import fem
-from tools.cases import ENERGY_DTS, ENERGY_TOLERANCE, energy_history
+from cases import energy_history
+from scenes.hard_cases import ENERGY_DTS, ENERGY_TOLERANCE
 
 PRECISIONS = ("f32", "f64")
 

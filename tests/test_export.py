@@ -148,7 +148,7 @@ def test_interrupted_export_keeps_its_frames_and_a_video_of_them(workdir):
 
 
 def test_the_camera_backs_off_when_a_body_would_leave_the_picture():
-    from app.export import SAFE_AREA, auto_framed, widened
+    from app.commands.export import SAFE_AREA, auto_framed, widened
 
     box = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
     camera = auto_framed(box, 4 / 3, None)

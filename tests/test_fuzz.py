@@ -1,6 +1,6 @@
 """Property-based fuzzing of the three readers: the only exception that may escape is FemError.
 
-Inputs are valid files (tools/cases.py) mutated line by line or token by token, plus random
+Inputs are valid files (tests/cases.py) mutated line by line or token by token, plus random
 text. Derandomized, so CI sees the same examples every run.
 """
 
@@ -14,7 +14,7 @@ from fem.errors import FemError
 from fem.mesh import read_tet_mesh
 from assets import build_mesh
 from fem.scene_file import read_toml_scene
-from tools.cases import COURSEWORK_SCENE, CUBE_MESH, TOML_SCENE
+from cases import COURSEWORK_SCENE, CUBE_MESH, TOML_SCENE
 
 FUZZ = settings(max_examples=400, derandomize=True, deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

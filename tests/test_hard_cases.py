@@ -1,4 +1,4 @@
-"""Hard cases (tools/cases.py) stay finite, lose energy under damping, and report what went wrong.
+"""Hard cases (scenes/hard_cases.py) stay finite, lose energy under damping, and report what went wrong.
 (test_energy.py: their energy never rises from one step to the next.)
 
 Every case runs with linear and corotational bodies, in f32 and f64. Cases that share a time
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import fem
-from tools.cases import CLI_HARD_CASES, HARD_CASES, METHODS, forced_failures, groups, run_cli_case, run_hard_cases
+from cases import CLI_HARD_CASES, forced_failures, run_cli_case, run_hard_cases
+from scenes.hard_cases import HARD_CASES, METHODS, groups
 
 PRECISIONS = ("f32", "f64")
 CASES = [pytest.param(case.name, method, id=f"{case.name}-{method}")

@@ -1,6 +1,6 @@
 """The wrong corotational variant f = -R Ke R^T (x - X), kept as a teaching switch.
 
-Checked against an independent assembly (app.direct's textbook 12x12 element blocks and
+Checked against an independent assembly (app.bench.direct's textbook 12x12 element blocks and
 numpy SVD rotations), and against the right variant under a pure rotation."""
 
 import subprocess
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import fem
-from app.direct import element_stiffness, polar_rotations, shape_gradients
+from app.bench.direct import element_stiffness, polar_rotations, shape_gradients
 from conftest import ROOT, box_mesh, make_scene
 
 E, NU = 1e4, 0.3

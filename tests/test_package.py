@@ -20,7 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_pyproject_names_the_packages_the_command_and_the_requirements():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert project["project"]["scripts"] == {"softfem": "app.cli:main"}
-    assert set(project["tool"]["setuptools"]["packages"]) == {"fem", "app", "assets", "scenes"}
+    # every folder of the product that is a package, sub-packages included (app.commands, ...)
+    packages = {str(init.parent.relative_to(ROOT)).replace("/", ".")
+                for top in ("fem", "app", "assets", "scenes") for init in (ROOT / top).rglob("__init__.py")}
+    assert set(project["tool"]["setuptools"]["packages"]) == packages
     # The same dependencies as requirements.txt, which also has the test tools.
     required = {line.split(">")[0].split("=")[0].strip().lower()
                 for line in (ROOT / "requirements.txt").read_text().splitlines()
@@ -56,6 +59,19 @@ def test_fem_imports_from_any_folder_with_its_scenes(installed, tmp_path):
     where, scenes, bodies = run.stdout.splitlines()
     assert Path(where).is_relative_to(installed)             # the installed copy, not this checkout
     assert "epcot" in scenes and bodies == "2"
+
+
+def test_the_installed_package_has_every_module_of_the_checkout(installed, tmp_path):
+    """Sub-packages included (app.commands, app.render, ...), and each imports from the installed copy."""
+    modules = sorted(".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+                     for top in ("fem", "app", "assets", "scenes") for path in (ROOT / top).rglob("*.py"))
+    code = ("import importlib, sys\n"
+            "for name in sys.argv[1:]:\n"
+            "    print(importlib.import_module(name).__file__)")
+    run = in_another_folder(installed, tmp_path, [sys.executable, "-c", code, *modules])
+    assert run.returncode == 0, run.stderr
+    assert all(Path(where).is_relative_to(installed) for where in run.stdout.splitlines())
+    assert len(run.stdout.splitlines()) == len(modules)
 
 
 def test_softfem_is_the_command_line(installed, tmp_path):

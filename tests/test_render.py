@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from app.camera import Camera, auto_frame
-from app.overlay import BODY_PALETTE, body_colors, draw_legend, draw_text_overlay, scalar_colors
-from app.render import make_renderer
+from app.render.camera import Camera, auto_frame
+from app.render.overlay import BODY_PALETTE, body_colors, draw_legend, draw_text_overlay, scalar_colors
+from app.render.factory import make_renderer
 
 WIDTH, HEIGHT = 160, 120
 REPO = Path(__file__).resolve().parents[1]
@@ -99,8 +99,8 @@ def test_software_cube_is_drawn_where_it_projects(software, cube_scene):
 def test_the_windows_picture_is_the_software_image_in_ggui_layout(software, cube_scene):
     """The window shows the rasteriser's image through GGUI's canvas (not GGUI's leaking 3D
     scene): columns first, row 0 at the bottom, colours in 0..1."""
-    from app.ggui_renderer import _to_ggui_layout
-    from app.software_renderer import to_window_layout
+    from app.render.ggui import _to_ggui_layout
+    from app.render.software import to_window_layout
 
     image = software.render(*cube_scene)
     picture = ti.Vector.field(3, ti.f32, (WIDTH, HEIGHT))
@@ -143,8 +143,8 @@ def vulkan_probe(workdir):
 
 GGUI_AND_SOFTWARE = """
 import numpy as np, taichi as ti
-from app.camera import Camera
-from app.render import make_renderer
+from app.render.camera import Camera
+from app.render.factory import make_renderer
 ti.init(arch=ti.cpu)
 scene = np.load("scene.npz")
 camera = Camera(*scene["camera"][:3], near=scene["camera"][3, 0], far=scene["camera"][3, 1])
@@ -174,8 +174,8 @@ def test_auto_is_the_software_renderer_and_needs_no_vulkan():
     result = run_python(
         "import sys, numpy as np, taichi as ti\n"
         "ti.init(arch=ti.cpu)\n"
-        "from app.camera import Camera\n"
-        "from app.render import make_renderer\n"
+        "from app.render.camera import Camera\n"
+        "from app.render.factory import make_renderer\n"
         "renderer = make_renderer('auto', 32, 24)\n"
         "image = renderer.render(np.eye(3), np.array([[0, 1, 2]]), np.ones((3, 3)),\n"
         "                        Camera(eye=[2.0, 2.0, 2.0], target=[0.0, 0.0, 0.0]))\n"
@@ -217,7 +217,7 @@ def test_colour_maps():
 # ---------------------------------------------------------------- floor, shadow, colour scales
 
 def test_no_floor_without_a_ground_only_the_backdrop(software, cube_scene):
-    from app.render import background
+    from app.render.frame import background
     vertices, faces, colors, camera = cube_scene
     image = software.render(vertices, faces, colors, camera, ground_y=None)
     backdrop = np.round(background(WIDTH, HEIGHT) * 255)
@@ -243,7 +243,8 @@ def test_a_body_above_the_ground_casts_a_shadow_straight_below(software):
 
 
 def test_window_and_export_colour_with_the_same_scales():
-    from app import colors, viewer
+    from app.render import colors
+    from app.window import viewer
     assert viewer.VertexColoring is colors.VertexColoring
     assert not hasattr(viewer, "VOLUME_RANGE")
 
@@ -264,7 +265,7 @@ class FakeSimulation:
 
 
 def test_strain_scale_grows_to_the_scene_and_never_shrinks():
-    from app.colors import VertexColoring, nice_ceiling
+    from app.render.colors import VertexColoring, nice_ceiling
     sim = FakeSimulation([0.0, 0.0])
     coloring = VertexColoring(sim, "strain")
     start = coloring.vmax

@@ -1,7 +1,7 @@
 """The start-up measurements of the benchmark run and say what they measured (never timed here)."""
 
 import fem
-from app import startup
+from app.bench import startup
 
 
 def test_startup_measures_warm_second_and_beside():

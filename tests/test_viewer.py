@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from app import orbit, picking
-from app.camera import Camera
+from app.window import orbit, picking
+from app.render.camera import Camera
 
 # Two unit squares facing +z, one at z = 0 and one behind it at z = -1, as triangles.
 SQUARE = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], float)
@@ -115,7 +115,7 @@ def test_zoom_scales_the_distance_and_the_clip_planes():
 # ---------------------------------------------------------------- compare labels, recordings
 
 def test_compare_labels_sit_over_their_copies():
-    from app.viewer import copy_labels
+    from app.window.viewer import copy_labels
     linear = np.array([[-2.0, 0, 0], [-1.0, 1.0, 0]])
     corotational = linear + [3.0, 0, 0]
     cam = Camera(eye=[0.5, 0.5, 8.0], target=[0.5, 0.5, 0.0], near=0.1, far=100.0)
@@ -130,7 +130,7 @@ def test_compare_labels_sit_over_their_copies():
 def test_a_recording_plays_at_the_speed_it_was_seen(monkeypatch):
     from types import SimpleNamespace
 
-    from app import viewer
+    from app.window import viewer
     frames = []
     window = SimpleNamespace(video=SimpleNamespace(append_data=frames.append), video_start=0.0,
                              video_frames=0)
@@ -232,7 +232,7 @@ position = [0.8, 0.0, 0.0]
 
 def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
     import scenes
-    from app.viewer import initial_camera
+    from app.window.viewer import initial_camera
     from PIL import Image
 
     scene_file = tmp_path / "boxes.toml"
@@ -315,7 +315,7 @@ def test_view_without_a_display_is_one_clear_error():
 
 
 def test_the_benchmark_times_the_windows_first_frames(display):
-    from app import startup
+    from app.bench import startup
 
     numbers = startup.view_seconds("cube86", repeats=1, display=display)
     assert set(numbers) == {"view_first_s", "view_stepped_s"}

@@ -1,8 +1,8 @@
 """What rotation extraction costs (fem/rotation.py), on a spinning, deforming cube.
 
-    python tools/rotation_cost.py [--precision f32|f64] [--cells 16] [--parallel]
+    python -m tools.rotation_cost [--precision f32|f64] [--cells 16] [--parallel]    # from the repository's root
 
-The cube (tools.cases.cube) turns at `spin` rad/s while it squashes, stretches and twists
+The cube (scenes.hard_cases.cube) turns at `spin` rad/s while it squashes, stretches and twists
 (30 % and 0.5 rad at 2 Hz). For several spins and time steps this prints how often Newton
 from the last step's rotation needs 1, 2, 3 or 4 steps or falls back to the SVD, and the
 largest |R - polar_rotation(F)| (Frobenius); then ns per tet for the warm-started
@@ -11,19 +11,14 @@ each also minus the cost of computing F and storing Bm R^T (what the solver does
 """
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
+import taichi as ti
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import taichi as ti  # noqa: E402
-
-import fem  # noqa: E402
-from fem.rotation import newton_rotation, polar_rotation, rotation_of, svd_rotation  # noqa: E402
-from tools.cases import cube  # noqa: E402
+import fem
+from fem.rotation import newton_rotation, polar_rotation, rotation_of, svd_rotation
+from scenes.hard_cases import cube
 
 
 def motion(X, t, spin):

@@ -1,18 +1,14 @@
 """ms per step and Newton iterations per step of the default (Newton) step and the one-solve
 step, at dt 0.02 s, on epcot, cube86 and box50k (the numbers issue 10 asks for).
 
-    python tools/step_cost.py [--steps N] [--precision f32|f64] [SCENE ...]
+    python -m tools.step_cost [--steps N] [--precision f32|f64] [SCENE ...]    # from the repository's root
 """
 
 import argparse
 import statistics
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import fem  # noqa: E402
-from app.bench import make_scene  # noqa: E402
+import fem
+from app.bench.plan import make_scene
 
 
 def measure(name, step, steps):

@@ -18,7 +18,7 @@ compared with a committed one number by number.
     frame25_coursework    the same from the coursework's epcot- and cube86-scene.txt (--cggs)
     epcot_compare         epcot at t = 2 s, linear left and corotational right (the README's picture)
     epcot_compare_volume  the same, coloured by volume ratio
-    accuracy_vs_time      the benchmark's plot, redrawn by `bench.plot` from docs/benchmark.json
+    accuracy_vs_time      the benchmark's plot, redrawn by `app.bench.plot` from docs/benchmark.json
                           (written by `main.py bench --docs`)
     hard_case_energy      total energy of a near-incompressible spinning cube at dt 0.5 s: the
                           one-solve step gains energy, the Newton step never does
@@ -44,10 +44,13 @@ from PIL import Image
 
 import fem
 import scenes
-from app import EXIT_INTERRUPTED, bench, device
-from app.export import DIVIDER_COLOR, View
+from app import EXIT_INTERRUPTED, device
+from app.bench import plot as bench_plot
+from app.bench import report as bench_report
+from app.commands.export import DIVIDER_COLOR, View
 from app.files import atomic_open, refuse_overwrite
 from fem.errors import FemError
+from scenes.hard_cases import ENERGY_TOLERANCE, HARD_CASES, build_scene
 
 DURATION_S = 4.0               # simulated time of the volume and length plots
 QUICK_FRACTION = 0.25          # --quick: this part of every simulated time, to check the command
@@ -57,7 +60,7 @@ STILL_SIZE = (800, 400)        # pixels, both panels
 PLOT_SIZE = (7.0, 3.6)         # inches, at PLOT_DPI
 PLOT_DPI = 110
 COURSEWORK_SCENES = ("epcot-scene.txt", "cube86-scene.txt")
-# The hard case (tools/cases.py defines it once), at 25 times the scenes' dt: there the one-solve
+# The hard case (scenes/hard_cases.py defines it once), at 25 times the scenes' dt: there the one-solve
 # step gains energy, run alone in f32 or f64.
 HARD_CASE, HARD_CASE_DT, HARD_CASE_S = "near-incompressible", 0.5, 10.0
 STEP_KINDS = {"single": "one-solve step (single)", "newton": "Newton step (default)"}
@@ -109,8 +112,7 @@ def catalogue():
         Figure("epcot_compare_volume", f"epcot at t = {STILL_TIME_S:g} s, coloured by volume ratio",
                lambda maker: epcot_still(maker, "volume")),
         Figure("hard_case_energy", f"the {HARD_CASE} cube at dt {HARD_CASE_DT:g} s: one-solve vs Newton step",
-               hard_case_energy, lambda maker: None if hard_cases() else
-               "needs tools/cases.py, which a clone has and an installed package does not"),
+               hard_case_energy),
     ]
 
 
@@ -202,15 +204,6 @@ class CompareRun:
         return pictures, numbers
 
 
-def hard_cases():
-    """tools.cases, where the hard cases are defined once, or None outside a clone."""
-    try:
-        from tools import cases
-    except ImportError:
-        return None
-    return cases
-
-
 # ---------------------------------------------------------------- the figures
 
 def volume_plot(maker, name):
@@ -298,22 +291,21 @@ def epcot_still(maker, color):
 def accuracy_plot(maker):
     try:
         results = json.loads(maker.bench.read_text())
-        plotted = {s["name"]: {legend: points for (legend, _, _), points in bench.series(s).items()}
+        plotted = {s["name"]: {legend: points for (legend, _, _), points in bench_plot.series(s).items()}
                    for s in results["scenes"]}
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise FemError(f"{maker.bench}: not the results of `main.py bench` ({error})") from None
-    return Drawn(lambda file: bench.plot(results, file),
+    return Drawn(lambda file: bench_plot.plot(results, file),
                  {"source": str(maker.bench), "x": "wall s per simulated s", "y": "position error",
                   "series": plotted})
 
 
 def hard_case_energy(maker):
-    cases = hard_cases()
-    case = replace(next(c for c in cases.HARD_CASES if c.name == HARD_CASE), dt=HARD_CASE_DT)
-    scene, _ = cases.build_scene([case], ["corotational"])
+    case = replace(next(c for c in HARD_CASES if c.name == HARD_CASE), dt=HARD_CASE_DT)
+    scene, _ = build_scene([case], ["corotational"])
     steps = maker.steps(HARD_CASE_S, HARD_CASE_DT)
     runs = {step: record(fem.Simulation(scene, step=step), steps) for step in STEP_KINDS}
-    tolerance = cases.ENERGY_TOLERANCE[fem.runtime.current()["precision"]]   # round-off, as the tests allow
+    tolerance = ENERGY_TOLERANCE[fem.runtime.current()["precision"]]   # round-off, as the tests allow
     fig, ax = new_plot()
     rises = {}
     for (step, label), colour in zip(STEP_KINDS.items(), ("C3", "C0")):
@@ -405,7 +397,7 @@ def check_cggs(cggs):
 def run(args) -> int:
     """main.py figures: make the figures the parsed command line `args` asks for; returns the exit code."""
     out = Path(args.out)
-    bench_results = Path(args.bench) if args.bench else bench.DOCS / bench.DOCS_FILES["json"]
+    bench_results = Path(args.bench) if args.bench else bench_report.DOCS / bench_report.DOCS_FILES["json"]
     if args.bench and not bench_results.is_file():
         raise FemError(f"--bench {bench_results}: no such file")
     maker = Maker(args.quick, check_cggs(args.cggs), bench_results)

@@ -1,14 +1,12 @@
-"""Hard cases and bad inputs, defined once.
+"""Running the hard cases, and bad inputs, defined once.
 
 tests/test_hard_cases.py, tests/test_energy.py, tests/test_bad_input.py and
 tools/robustness_table.py all read these lists, so the table in docs/robustness.md
-always describes what the tests check.
+always describes what the tests check. The hard cases themselves are
+scenes/hard_cases.py (`main.py figures` draws one of them).
 
-Hard cases (`HARD_CASES`) are small scenes built in Python. Every case runs
-twice, once with linear and once with corotational bodies, and the cases that
-share a time step and a step count run as bodies of one scene
-(`run_hard_cases`): bodies do not interact, and Taichi compiles its kernels once
-per Simulation (seconds), not once per body.
+`run_hard_cases` runs the cases that share a time step and a step count as bodies of
+one scene, and reports what each case did with each method (`Outcome`).
 
 Bad inputs (`BAD_INPUTS`) are small files written into an empty folder plus the
 `main.py simulate` arguments that read them, with the words the `error:` line
@@ -16,120 +14,14 @@ must contain.
 """
 
 import sys
-from dataclasses import dataclass, field, replace
-from itertools import groupby
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from scenes.hard_cases import ENERGY_STEPS, HARD_CASES, METHODS, HardCase, build_scene, mirror_inverted
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from fem.mesh import TetMesh, prepare_mesh  # noqa: E402
-from fem.scene import (Body, Effects, Initial, Material, Scene, Selection,  # noqa: E402
-                       SolverSettings)
-
-METHODS = ("linear", "corotational")
-DAMPING = Effects(alpha=0.1, beta=0.1)       # the coursework's Rayleigh damping
-
-
-# ---------------------------------------------------------------- meshes
-
-def cube(cells=2, size=(1.0, 1.0, 1.0)):
-    """A box of `size` m centred at the origin, cells^3 cubes of 6 tets each (Kuhn split)."""
-    axes = [np.linspace(-s / 2, s / 2, cells + 1) for s in size]
-    X = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
-    index = np.arange((cells + 1) ** 3).reshape((cells + 1,) * 3)
-    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-    tets = []
-    for i in range(cells):
-        for j in range(cells):
-            for k in range(cells):
-                corner = [index[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-                tets += [[corner[t] for t in tet] for tet in kuhn]
-    return prepare_mesh(X, np.array(tets), f"cube(cells={cells}, size={size})")
-
-
-def sliver_tet(height=1e-3):
-    """One sliver: four corners of a unit square lifted alternately by +-height (m), so all six
-    edges are about 1.4 m long but the volume is only 2/3 * height and two dihedral angles are
-    nearly 0 and two nearly 180 degrees."""
-    X = np.array([[1.0, 0, height], [-1.0, 0, height], [0, 1.0, -height], [0, -1.0, -height]])
-    return prepare_mesh(X, np.array([[0, 1, 2, 3]]), f"sliver_tet(height={height})")
-
-
-# ---------------------------------------------------------------- hard cases
-
-@dataclass
-class Part:
-    """One body of a hard case: its mesh, material and initial velocities.
-
-    push: [(local vertex id, velocity (3,) m/s)], set at t = 0.
-    """
-
-    mesh: TetMesh
-    E: float = 1e4            # Pa
-    nu: float = 0.3
-    density: float = 1000.0   # kg/m^3
-    push: list = field(default_factory=list)
-
-
-@dataclass
-class HardCase:
-    """A scene that must stay finite and lose energy under damping.
-
-    inverted: start from the rest shape mirrored through the plane x = centre, so
-    every tet is inverted (det F < 0) at t = 0.
-    """
-
-    name: str
-    what: str
-    parts: list
-    dt: float = 0.02          # s
-    steps: int = 100
-    inverted: bool = False
-
-
-def corner_push(speed):
-    """Opposite pushes on two corners of a cube(cells=2): it spins and shears."""
-    return [(0, np.array([0.0, 0.0, speed])), (2, np.array([0.0, 0.0, -speed]))]
-
-
-HARD_CASES = [
-    HardCase("inverted start", "1 m cube mirrored through a plane: all 48 tets inverted at t = 0",
-             [Part(cube())], inverted=True),
-    HardCase("near-incompressible", "nu = 0.4999 (lambda = 1666 E), corners pushed at 5 m/s",
-             [Part(cube(), nu=0.4999, push=corner_push(5.0))]),
-    HardCase("very soft", "E = 10 Pa, density 1000, corners pushed at 5 m/s",
-             [Part(cube(), E=10.0, push=corner_push(5.0))]),
-    HardCase("very stiff", "E = 1e9 Pa, corners pushed at 5 m/s",
-             [Part(cube(), E=1e9, push=corner_push(5.0))]),
-    HardCase("sliver tets", "a 1 x 1 x 0.001 m slab (48 flat tets) and a lone sliver tet "
-             "(volume 7e-4 m^3, edges 1.4 m), pushed at 2 m/s",
-             [Part(cube(size=(1.0, 1.0, 1e-3)), push=corner_push(2.0)),
-              Part(sliver_tet(), push=[(0, np.array([0.0, 0.0, 2.0]))])]),
-    HardCase("stiffness contrast 1e6", "two cubes, E = 1e3 and 1e9 Pa, in one solve, both pushed",
-             [Part(cube(), E=1e3, push=corner_push(5.0)), Part(cube(), E=1e9, push=corner_push(5.0))]),
-    # convergence is tested per body, so a 1e11 J body does not set the scale for 1 J ones
-    HardCase("huge impulse", "one corner of a 1 m cube set to 1e5 m/s",
-             [Part(cube(), push=[(0, np.array([1e5, 0.0, 0.0]))])], dt=0.1, steps=40),
-    HardCase("large dt 0.5 s", "a cube pushed at 5 m/s from an inverted start",
-             [Part(cube(), push=corner_push(5.0))], dt=0.5, steps=20, inverted=True),
-    HardCase("large dt 0.5 s, extremes", "nu = 0.4999 and E = 1e9 cubes pushed at 5 m/s",
-             [Part(cube(), nu=0.4999, push=corner_push(5.0)), Part(cube(), E=1e9, push=corner_push(5.0))],
-             dt=0.5, steps=20),
-    HardCase("1000 steps", "a 6-tet cube pushed at 3 m/s (10 s of motion)",
-             [Part(cube(cells=1), push=[(0, np.array([3.0, 0.0, 0.0]))])], dt=0.01, steps=1000),
-]
-
-
-# Time steps at which every hard case must show total energy that never rises from one step
-# to the next (tests/test_energy.py, docs/robustness.md), and the rise allowed per step,
-# relative to the case's starting energy, in each precision.
-ENERGY_DTS = (0.001, 0.02, 0.1, 0.5)
-ENERGY_STEPS = 15
-ENERGY_TOLERANCE = {"f32": 1e-3, "f64": 1e-6}
 
 
 @dataclass
@@ -155,50 +47,6 @@ class Outcome:
                  f"inverted {self.inverted_start} -> {self.inverted_end}",
                  "volume " + ", ".join(f"{r:.3f}" for r in self.volume_ratio_end)]
         return ", ".join(parts)
-
-
-def build_scene(cases, methods=METHODS):
-    """One scene holding every case's bodies once per method, laid out 3 m apart along x.
-
-    Returns (scene, layout) with layout [(case, method, [body indices])].
-    """
-    bodies, initial, layout = [], [], []
-    for case in cases:
-        for method in methods:
-            ids = []
-            for part in case.parts:
-                shift = np.array([3.0 * len(bodies), 0.0, 0.0])
-                mesh = TetMesh(part.mesh.vertices + shift, part.mesh.tets, part.mesh.source)
-                ids.append(len(bodies))
-                bodies.append(Body(f"{case.name} {method} {len(ids)}", mesh,
-                                   Material(part.E, part.nu, part.density), method))
-                for vertex, velocity in part.push:
-                    initial.append(Initial(Selection(ids[-1], vertices=np.array([vertex])),
-                                           "velocity", (velocity,)))
-            layout.append((case, method, ids))
-    dt, steps = cases[0].dt, cases[0].steps
-    scene = Scene(f"hard cases dt {dt:g} s x {steps}", bodies, effects=DAMPING,
-                  solver=SolverSettings(dt=dt, tolerance=1e-4, max_iterations=400),
-                  initial=initial)
-    return scene, layout
-
-
-def mirror_inverted(sim, layout):
-    """Write the inverted start state: each inverted case's bodies mirrored through x = their centre."""
-    x = sim.positions()
-    for case, _, ids in layout:
-        if case.inverted:
-            for b in ids:
-                s = sim.model.bodies[b].vertices
-                centre = x[s, 0].mean()
-                x[s, 0] = 2 * centre - x[s, 0]
-    sim.set_state(x, sim.velocities())
-
-
-def groups(cases=HARD_CASES):
-    """Cases that can share one Simulation: same dt and number of steps."""
-    key = lambda case: (case.dt, case.steps)  # noqa: E731
-    return [list(group) for _, group in groupby(sorted(cases, key=key), key=key)]
 
 
 def run_hard_cases(cases, methods=METHODS):

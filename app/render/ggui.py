@@ -10,7 +10,7 @@ import contextlib
 import numpy as np
 import taichi as ti
 
-from app.render import AMBIENT, FrameBuffers, Renderer, background, build_frame
+from app.render.frame import AMBIENT, FrameBuffers, Renderer, background, build_frame
 
 _LOG_LEVELS = ["trace", "debug", "info", "warn", "error", "critical"]
 

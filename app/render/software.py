@@ -17,7 +17,7 @@ a camera placed inside the scene loses the triangles touching it.
 import numpy as np
 import taichi as ti
 
-from app.render import AMBIENT, FrameBuffers, Renderer, background, build_frame
+from app.render.frame import AMBIENT, FrameBuffers, Renderer, background, build_frame
 
 DEPTH_LEVELS = 2**31 - 1  # depth is stored in the key's upper 32 bits
 NO_TRIANGLE = -1

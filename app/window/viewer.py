@@ -1,4 +1,4 @@
-"""`main.py view`: the interactive window (Taichi GGUI).
+"""The interactive window of `main.py view` (Taichi GGUI).
 
 Poke a body with the mouse and watch linear FEM inflate as it turns while
 corotational FEM keeps its volume. The window only reads the engine's state
@@ -7,12 +7,13 @@ and talks to it through its public calls: `apply_impulse`, `set_method`,
 
 One frame: read input -> step the simulation (real time when it keeps up) ->
 draw the bodies, the floor and the panel -> write a stats line.
+
+The Viewer's input handling is app/window/controls.py, its panel app/window/panel.py.
 """
 
 import json
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,85 +21,24 @@ import taichi as ti
 
 import fem
 import scenes
-from app import EXIT_INTERRUPTED, device, orbit, picking
-from app.camera import Camera, auto_frame
-from app.colors import VertexColoring
-from app.display import display_problem
-from app.files import atomic_open, atomic_path, numbered_path, refuse_overwrite
-from app.ggui_renderer import _quiet_taichi, _to_ggui_layout
-from app.render import background, build_frame
-from app.software_renderer import SoftwareRenderer, to_window_layout
+from app.files import atomic_open, atomic_path, numbered_path
+from app.render.camera import Camera, auto_frame
+from app.render.colors import VertexColoring
+from app.render.frame import background, build_frame
+from app.render.ggui import _quiet_taichi, _to_ggui_layout
+from app.render.software import SoftwareRenderer, to_window_layout
+from app.window import orbit
+from app.window.controls import DRAG_PIXELS, MARKER_SECONDS, Controls
+from app.window.panel import PANEL_WIDTH, Panel
 from fem.scene import PRECONDITIONERS
 
-PANEL_WIDTH = 0.29              # of the window's width, on the right
 LABEL_SIZE = (0.14, 0.04)       # of the window: the title boxes naming the copies of --compare
 MAX_STEPS_PER_FRAME = 8
 VIDEO_FPS = 30
-MARKER_SECONDS = 0.8            # how long a click's hit point and arrow stay drawn
 MARKER_COLOR = (1.0, 0.85, 0.1)
-DRAG_PIXELS = 6                 # a press and release further apart than this is a drag
-HELP = """\
-left click      push the body along the view ray
-left drag       push along the drag (longer = harder)
-right drag      orbit
-shift+right or middle drag    pan
-ctrl+right drag or up/down    zoom
-f   frame the scene again      c   linear <-> corotational
-space  pause     n  one step   r   reset the scene
-v   start/stop video (mp4)     p   screenshot (png)
-l   PCG preconditioner: auto -> two-level -> block Jacobi
-scenes: the numbered list in the panel
-h   this help                  Esc quit"""
 
 
-@dataclass
-class Press:
-    """A left button press waiting for its release: where, and what it hit."""
-
-    pixel: np.ndarray
-    hit: picking.Hit | None
-
-
-def run(args) -> int:
-    check_display()
-    width, height = parse_size(args.size)
-    to_file = args.stats is not None and args.stats != "-"
-    if to_file:
-        refuse_overwrite(args.stats, args.overwrite)
-    device.start(args)
-    viewer = Viewer(args, width, height)
-    try:
-        if to_file:
-            with atomic_open(args.stats, keep_if_interrupted=True) as stats_file:
-                viewer.loop(stats_file)
-        else:
-            viewer.loop(sys.stdout if args.stats == "-" else None)
-    except KeyboardInterrupt:
-        viewer.stop_video()
-        kept = f"; kept the {viewer.frame} complete rows in {args.stats}" if to_file else ""
-        print(f"interrupted at frame {viewer.frame}{kept}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    return 0
-
-
-def check_display():
-    """FemError unless a display is there: GLFW ends the process when it cannot open one."""
-    problem = display_problem()
-    if problem is not None:
-        raise fem.FemError(f"view: {problem}")
-
-
-def parse_size(text):
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise fem.FemError(f"--size: expected WIDTHxHEIGHT, e.g. 1280x720, got {text!r}") from None
-    if not (160 <= width <= 8192 and 120 <= height <= 8192):
-        raise fem.FemError(f"--size: {width}x{height} is out of range (160x120 to 8192x8192)")
-    return width, height
-
-
-class Viewer:
+class Viewer(Controls, Panel):
     def __init__(self, args, width, height):
         self.args, self.width, self.height = args, width, height
         names = list(scenes.builtin_scenes())
@@ -225,115 +165,6 @@ class Viewer:
             self.sim.step()
         self.steps_last_frame = steps
 
-    # ------------------------------------------------------------ input
-
-    def handle_keys(self):
-        for event in self.window.get_events(ti.ui.PRESS):
-            key = event.key
-            if key == ti.ui.ESCAPE:
-                self.window.running = False
-            elif key == " ":
-                self.paused = not self.paused
-            elif key == "n":
-                self.paused = True
-                self.sim.step()
-            elif key == "r":
-                self.reset()
-            elif key == "c":
-                self.toggle_corotation()
-            elif key == "l":
-                self.next_preconditioner()
-            elif key == "f":
-                self.reset_view()
-            elif key == "h":
-                self.show_help = not self.show_help
-            elif key == "p":
-                self.screenshot_due = True
-            elif key == "v":
-                self.toggle_video()
-            elif key == ti.ui.UP:
-                self.camera = orbit.zoom(self.camera, 0.9)
-            elif key == ti.ui.DOWN:
-                self.camera = orbit.zoom(self.camera, 1 / 0.9)
-            elif key == ti.ui.LMB and self.in_view():
-                pixel = self.cursor()
-                self.press = Press(pixel, self.pick(pixel))
-            elif key in (ti.ui.RMB, ti.ui.MMB):
-                self.drag_origin = self.cursor()
-        for event in self.window.get_events(ti.ui.RELEASE):
-            if event.key == ti.ui.LMB and self.press is not None:
-                self.release(self.cursor())
-        # After a slow frame (a scene's warm-up) a click's release can come before its press:
-        # a press whose button is already up is a whole click.
-        if self.press is not None and not self.window.is_pressed(ti.ui.LMB):
-            self.release(self.cursor())
-
-    def handle_mouse(self):
-        """Right drag orbits; middle drag or shift + right drag pans."""
-        right = self.window.is_pressed(ti.ui.RMB)
-        middle = self.window.is_pressed(ti.ui.MMB)
-        if not (right or middle) or self.drag_origin is None:
-            self.drag_origin = None
-            return
-        pixel = self.cursor()
-        dx, dy = pixel - self.drag_origin
-        self.drag_origin = pixel
-        if middle or self.window.is_pressed(ti.ui.SHIFT):
-            self.camera = orbit.pan(self.camera, dx, dy, self.height)
-        elif self.window.is_pressed(ti.ui.CTRL):
-            self.camera = orbit.zoom(self.camera, float(np.exp(dy / 200)))
-        else:
-            self.camera = orbit.orbit(self.camera, dx, dy)
-
-    def cursor(self):
-        """The mouse position in pixels, (x right, y down) from the top-left corner."""
-        x, y = self.window.get_cursor_pos()
-        return np.array([x * self.width, (1.0 - y) * self.height])
-
-    def in_view(self):
-        """True when the cursor is over the 3D view, not over the panel or the help."""
-        x, _ = self.window.get_cursor_pos()
-        return x < 1 - PANEL_WIDTH and not self.show_help
-
-    def pick(self, pixel):
-        origin, direction = self.camera.ray(pixel[0], pixel[1], self.width, self.height)
-        return picking.pick(origin, direction, self.x, self.sim.model.surface)
-
-    def release(self, pixel):
-        """A click pushes along the view ray; a drag pushes along the drag, harder the longer it is."""
-        press, self.press = self.press, None
-        if press.hit is None:
-            return
-        drag = pixel - press.pixel
-        if np.linalg.norm(drag) <= DRAG_PIXELS:
-            direction = press.hit.point - self.camera.eye
-            strength = self.strength
-        else:
-            right, true_up, _ = self.camera.basis()
-            direction = drag[0] * right - drag[1] * true_up
-            strength = self.strength * min(np.linalg.norm(drag) / (0.2 * self.height), 4.0)
-        delta_v = strength * direction / np.linalg.norm(direction)
-        self.push(press.hit, delta_v)
-
-    def push(self, hit, delta_v):
-        """Push the hit body around the hit point; in compare mode its twin gets the same push."""
-        model = self.sim.model
-        body = int(model.vertex_body_np[hit.vertex])
-        span = model.bodies[body].vertices
-        ids, dv = picking.push(self.x, np.arange(span.start, span.stop), hit.point, self.radius, delta_v)
-        event = {"type": "click", "body": body, "hit_vertex": hit.vertex,
-                 "hit_point": hit.point.tolist(), "delta_v": np.asarray(delta_v).tolist(),
-                 "vertices": len(ids)}
-        if self.twins:
-            twin = (body + self.twins) % (2 * self.twins)
-            twin_ids = picking.mirrored(ids, self.body_starts, body, twin)
-            ids, dv = np.concatenate([ids, twin_ids]), np.concatenate([dv, dv])
-            event["twin_body"] = twin
-        self.sim.apply_impulse(ids, dv)
-        self.events.append(event)
-        self.marker = (hit.point, np.asarray(delta_v))
-        self.marker_until = time.perf_counter() + MARKER_SECONDS
-
     # ------------------------------------------------------------ actions
 
     def reset(self):
@@ -393,7 +224,7 @@ class Viewer:
     # ------------------------------------------------------------ drawing
 
     def set_color_mode(self, mode):
-        """Colour by "body", "volume" or "strain", with the exporter's scales (app.colors)."""
+        """Colour by "body", "volume" or "strain", with the exporter's scales (app.render.colors)."""
         self.coloring = VertexColoring(self.sim, mode, copies=2 if self.twins else 1)
 
     def draw(self):
@@ -474,122 +305,6 @@ class Viewer:
             print(self.message, file=sys.stderr)
             self.events.append({"type": "screenshot", "path": str(path)})
             self.screenshot_due = False
-
-    # ------------------------------------------------------------ panel
-
-    def draw_panel(self):
-        with self.gui.sub_window("softfem", 1 - PANEL_WIDTH, 0.0, PANEL_WIDTH, 1.0) as g:
-            g.text(f"{self.sim.scene.name}")
-            g.text(f"{self.sim.model.n_tets} tets, {self.sim.model.n_vertices} vertices   [h] help")
-            if self.message:
-                g.text(self.message)
-            if g.button("run" if self.paused else "pause"):
-                self.paused = not self.paused
-            if g.button("step"):
-                self.paused = True
-                self.sim.step()
-            if g.button("reset"):
-                self.reset()
-            for section in (self.draw_stats, self.draw_methods, self.draw_impulse, self.draw_colors,
-                            self.draw_solver, self.draw_material, self.draw_scenes):
-                g.text("")
-                section(g)
-
-    def draw_stats(self, g):
-        s = self.stats
-        g.text("Numbers")
-        g.text(f"{self.fps:5.1f} fps, {self.steps_last_frame} step(s)/frame, t = {s['t']:.2f} s"
-               + ("  PAUSED" if self.paused else ""))
-        g.text(f"ms/step: rotations {s.get('rotation_ms', 0):.1f}, solve {s.get('solve_ms', 0):.1f}")
-        g.text(f"ms/frame rendering: {self.render_ms:.1f}")
-        residual = s.get("residual")
-        preconditioner = f" ({s['preconditioner']})" if s.get("preconditioner") else ""
-        g.text(f"{s.get('solver', self.sim.settings.method)}{preconditioner}: {s.get('solver_iters', 0)} iterations, "
-               f"residual {residual if residual is not None else float('nan'):.1e}"
-               + ("" if s.get("converged", True) else "  NOT CONVERGED"))
-        for body, ratio in zip(self.sim.model.bodies, s["volume_ratio"]):
-            g.text(f"volume {100 * ratio:6.1f} %  {body.name}")
-        g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
-        g.text(f"inverted tets: {s['inverted_tets']}")
-
-    def draw_methods(self, g):
-        g.text("Method  (c toggles all)")
-        methods = self.methods()
-        all_corotational = all(m == "corotational" for m in methods)
-        if g.checkbox("corotational (all bodies)", all_corotational) != all_corotational:
-            self.toggle_corotation()
-            return
-        wanted = ["corotational" if g.checkbox(f"{i}: {b.name}", m == "corotational") else "linear"
-                  for i, (b, m) in enumerate(zip(self.sim.model.bodies, methods))]
-        if wanted != methods:
-            self.set_methods(wanted)
-
-    def draw_impulse(self, g):
-        g.text("Click impulse")
-        self.strength = g.slider_float("strength [m/s]", self.strength, 0.0, 5.0 * self.size)
-        self.radius = g.slider_float("radius [m]", self.radius, 0.01 * self.size, 0.5 * self.size)
-
-    def draw_colors(self, g):
-        g.text("Colour")
-        for mode in ("body", "volume", "strain"):
-            if g.checkbox(f"{mode}", self.coloring.mode == mode) and self.coloring.mode != mode:
-                self.set_color_mode(mode)
-        if self.coloring.mode == "volume":
-            g.text(f"volume ratio J: blue {self.coloring.vmin}, grey 1, red {self.coloring.vmax}")
-        elif self.coloring.mode == "strain":
-            g.text(f"strain energy 0 .. {self.coloring.vmax:.3g} J/m^3 (grows, never shrinks)")
-
-    def draw_solver(self, g):
-        """Solver settings; the engine reads them at every step."""
-        g.text("Solver")
-        settings, effects = self.sim.settings, self.sim.scene.effects
-        if g.button(f"solver: {settings.method} (switch)"):
-            settings.method = "jacobi" if settings.method == "pcg" else "pcg"
-        if settings.method == "pcg":
-            chosen = self.sim.solver.preconditioner
-            name = settings.preconditioner + (f" ({chosen})" if settings.preconditioner == "auto" else "")
-            if g.button(f"preconditioner: {name} (l)"):
-                self.next_preconditioner()
-        exponent = g.slider_int("tolerance 1e-k", round(-np.log10(settings.tolerance)), 1, 10)
-        settings.tolerance = 10.0 ** -exponent
-        settings.max_iterations = g.slider_int("max iterations", settings.max_iterations, 1, 1000)
-        settings.dt = max(g.slider_float("dt [s]", settings.dt, 0.001, 0.05), 1e-4)
-        effects.alpha = g.slider_float("damping alpha", effects.alpha, 0.0, 2.0)
-        effects.beta = g.slider_float("damping beta", effects.beta, 0.0, 0.5)
-
-    def draw_scenes(self, g):
-        g.text("Scenes")
-        for number, ref in enumerate(self.scene_refs[:9], start=1):
-            if g.button(f"{number} {Path(str(ref)).stem}"):
-                self.switch_scene(ref)
-
-    def draw_material(self, g):
-        """E and nu of one body, applied when the slider is let go (changing them rebuilds
-        the preconditioner, and each drag position would otherwise be a new material)."""
-        bodies = self.sim.model.bodies
-        g.text("Material")
-        if len(bodies) > 1:
-            self.material_body = g.slider_int("body", self.material_body, 0, len(bodies) - 1)
-        material = bodies[self.material_body].material
-        body, E, nu = self.material_edit or (self.material_body, material.E, material.nu)
-        if body != self.material_body:
-            body, E, nu = self.material_body, material.E, material.nu
-        log_E = g.slider_float("log10 E [Pa]", float(np.log10(E)), 1.0, 8.0)
-        nu = g.slider_float("nu", nu, 0.0, 0.49)
-        E = 10.0 ** log_E
-        g.text(f"{bodies[body].name}: E = {E:.4g} Pa, nu = {nu:.3f}")
-        changed = not (np.isclose(E, material.E) and np.isclose(nu, material.nu))
-        self.material_edit = (body, E, nu) if changed else None
-        if changed and not self.window.is_pressed(ti.ui.LMB):
-            self.sim.set_material(body, E, nu)
-            self.events.append({"type": "material", "body": body, "E": E, "nu": nu})
-            self.material_edit = None
-
-    def draw_help(self):
-        lines = HELP.splitlines()
-        with self.gui.sub_window("help (h to close)", 0.05, 0.1, 0.6, 0.045 * len(lines) + 0.06) as g:
-            for line in lines:
-                g.text(line)
 
     def switch_scene(self, ref):
         self.stop_video()

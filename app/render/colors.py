@@ -12,8 +12,8 @@ both copies of --compare, and the legend says the scale of every frame.
 
 import numpy as np
 
-from app.overlay import body_colors, draw_legend, scalar_colors
-from app.render import nice_step
+from app.render.frame import nice_step
+from app.render.overlay import body_colors, draw_legend, scalar_colors
 
 # Strain energy above this percentile of the tets (a few bad slivers) does not stretch the scale.
 STRAIN_PERCENTILE = 99

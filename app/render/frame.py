@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from app.camera import Camera
+from app.render.camera import Camera
 
 AMBIENT = 0.3
 KEY_LIGHT = 0.5
@@ -226,23 +226,3 @@ def background(width: int, height: int) -> np.ndarray:
     t = np.linspace(0.0, 1.0, height)[:, None, None]  # 0 at the top row
     column = (1 - t) * BACKGROUND_TOP + t * BACKGROUND_BOTTOM
     return np.broadcast_to(column, (height, width, 3)).astype(np.float32)
-
-
-def make_renderer(kind: str, width: int, height: int, smooth: bool = True) -> Renderer:
-    """A renderer of the given kind: "software", "ggui" or "auto" (the software one).
-
-    "auto" takes the software renderer: it draws the same triangles and needs no Vulkan, on a
-    CPU it runs 2 to 3 times faster than GGUI over a software Vulkan driver, and it holds its
-    memory, where GGUI's offscreen 3D scene in Taichi 1.7 keeps about 250 kB per frame (4 GB
-    for a 10-minute video). `kind="ggui"` still draws with GGUI.
-    Taichi must already be initialised (the engine does it).
-    """
-    # Imported here because both modules import this one.
-    from app.ggui_renderer import GGUIRenderer
-    from app.software_renderer import SoftwareRenderer
-
-    if kind in ("software", "auto"):
-        return SoftwareRenderer(width, height, smooth)
-    if kind == "ggui":
-        return GGUIRenderer(width, height, smooth)
-    raise ValueError(f"unknown renderer kind {kind!r}: use 'auto', 'ggui' or 'software'")

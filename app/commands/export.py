@@ -43,13 +43,13 @@ from PIL import Image, ImageDraw, ImageFont
 import fem
 import scenes
 from app import EXIT_INTERRUPTED, device
-from app.camera import Camera, auto_frame
-from app.colors import VertexColoring
+from app.commands.simulate import check_rejected
 from app.files import atomic_open, atomic_path, interrupts_deferred, refuse_overwrite
-from app.overlay import PANEL_COLOR, TEXT_COLOR, draw_text_overlay
 from app.progress import Progress
-from app.render import make_renderer
-from app.simulate import check_rejected
+from app.render.camera import Camera, auto_frame
+from app.render.colors import VertexColoring
+from app.render.factory import make_renderer
+from app.render.overlay import PANEL_COLOR, TEXT_COLOR, draw_text_overlay
 from fem.errors import SizeLimitError
 
 FRAME_NAME = "frame_{:05d}.png"

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from app.camera import Camera
+from app.render.camera import Camera
 
 ORBIT_DEGREES_PER_PIXEL = 0.3
 MAX_ELEVATION_DEGREES = 89.0   # stop short of the poles, where "up" is undefined

@@ -1,0 +1,251 @@
+"""The benchmark's report: results.md (the headline, the targets and what limits them, the
+preconditioners, one table per scene), results.json (every number) and the plot."""
+
+import json
+from pathlib import Path
+
+from app.bench.conclusions import (baseline, corotation_cost, direct_comparison, find, fmt, final_error, frontier,
+                                   goal_dt)
+from app.bench.measure import PRECONDITIONER_TOLERANCE
+from app.bench.plan import BASELINE_TOLERANCE, ERROR_GOAL, REFERENCE_REFINEMENT, REFERENCE_SETTINGS, sci, step_name
+from app.bench.plot import plot
+from app.files import atomic_open
+from fem.solver import TWO_LEVEL_VERTICES
+
+# What `write` names its files: in --out, and as the committed pages in docs/ (`bench --docs`).
+RESULT_FILES = {"json": "results.json", "md": "results.md", "plot": "accuracy_vs_time.png"}
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+DOCS_FILES = {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_vs_time.png"}
+
+
+# ---------------------------------------------------------------- writing
+
+def explanation(results):
+    """Two paragraphs: the reference and what its error floor means; the columns."""
+    plan = results["plan"]
+    reference = (
+        "Each run starts from the same state and runs to the last checkpoint. **The reference** is corotational "
+        f"backward Euler at dt_ref = the scene's dt / {REFERENCE_REFINEMENT}: Newton until every body's gradient "
+        f"is under 1e-10 of the step's own terms (at most {REFERENCE_SETTINGS['max_newton']} iterations), PCG to "
+        "1e-10, SVD rotations, in float64 whatever the variants' precision (so its timings are f64's). Being "
+        "backward Euler, it has an O(dt_ref) error of its own: *reference at 2 dt_ref*, the same at twice that "
+        "dt, differs from it by about that much, and its error is the floor of the error axis. Errors near the "
+        "floor are measured too low (a variant at dt shows about (dt - dt_ref) / dt of its true error: 1/2 at "
+        "2 dt_ref, 7/8 at 8 dt_ref), so a run meets the goal of "
+        f"{100 * ERROR_GOAL:g} % of the scene size only when its error plus the floor does. dt_ref = the "
+        "smallest variant dt / 8 would lower the floor 4 times, but the reference, already the dearest run of a "
+        "scene, would cost 4 times more.")
+    columns = (
+        "*step*: Newton (iterated until the velocity settles to the scene's newton_tolerance) or single (one "
+        "linear solve with the rotations of the step's start); a linear body's step is exact either way. "
+        "*s/sim s*: wall seconds per simulated second, ms/step / dt / 1000 (compares runs at different dt); "
+        f"*ms/step*: wall time per step (median, min-max) after {plan['warmup_steps']} warm-up steps, "
+        "Taichi kernels compiled beforehand; *Newton*: Newton iterations per step and *iters*: linear solver "
+        "iterations per step (means); *ns/tet/iter*: a step's solve time per iteration and tet; *rot ms*: "
+        "rotation extraction per step; *halvings*: line-search step halvings and *E-limited*: bodies whose "
+        "energy rise was scaled back, both summed over the run; *B/tet*: memory of the solver's data (Taichi "
+        "fields of model, state and solver; for the direct solver the matrix and its factor); *err t*: RMS "
+        "vertex distance to the reference at time t, divided by the bounding-box diagonal; *vol*: largest "
+        "|volume / rest volume - 1| of any body; *energy*: (kinetic + elastic) energy at the end over its "
+        "start value, minus 1. A blank (–) error: the variant would have taken longer than its time budget "
+        f"({plan['budget_s']:g} s) and stopped early.")
+    return reference + "\n\n" + columns
+
+
+def markdown(results):
+    m, lines = results["machine"], []
+    lines += ["# What accuracy costs in time", ""]
+    lines += [f"- {line}" for line in results["headline"]]
+    lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores (load average {m['load_average']:.1f} at the start)"
+              + (f", GPU {m['gpu']}" if m.get("gpu") else "") + f"; Taichi {m['taichi']} on {m['backend']}, "
+              f"{m['precision']}; direct solvers {m['direct_solver']}; Python {m['python']}; {m['date']}; "
+              f"{m['bench_minutes']:.1f} minutes.", "", explanation(results), ""]
+    lines += targets(results)
+    lines += preconditioner_table(results)
+    lines += ["## Summary", "",
+              f"Corotational, PCG {sci(BASELINE_TOLERANCE)}; time in wall seconds per simulated second, errors at "
+              "the last checkpoint; the largest dt of the dt axis whose error plus the floor is within the goal.", "",
+              "| scene | tets | dt (s) | reference floor | Newton s/sim s | single s/sim s | Newton error | "
+              "single error | largest dt within goal, Newton | single | corotation's extra cost, single | "
+              "Newton | direct |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for s in results["scenes"]:
+        newton, single = baseline(s, "corotational", "newton"), baseline(s, "corotational", "single")
+        lines.append(
+            f"| {s['name']} | {s['tets']} | {s['dt']:g} | {s['reference_floor']:.1e} "
+            f"| {newton['s_per_sim_s']:.3g} | {single['s_per_sim_s']:.3g} "
+            f"| {fmt(final_error(newton), '.1e')} | {fmt(final_error(single), '.1e')} "
+            f"| {fmt(goal_dt(s, 'newton'), 'g', 'none')} | {fmt(goal_dt(s, 'single'), 'g', 'none')} "
+            f"| {corotation_cost(s, 'single'):+.0f} % | {corotation_cost(s, 'newton'):+.0f} % "
+            f"| {corotation_cost(s, 'single', 'direct'):+.0f} % |")
+    for s in results["scenes"]:
+        times = [f"err {t:g} s" for t in s["checkpoints"]]
+        lines += ["", f"## {s['name']}", "",
+                  f"{s['description']} {s['tets']} tets, {s['vertices']} vertices, scene dt {s['dt']:g} s, "
+                  f"dt_ref {s['reference_dt']:g} s.", "",
+                  "| variant | step | dt (s) | s/sim s | ms/step | min-max | Newton | iters | ns/tet/iter | rot ms "
+                  "| halvings | E-limited | B/tet | " + " | ".join(times) + " | vol | energy |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(times)
+                  + "---:|---:|"]
+        for r in s["variants"]:
+            lines.append(
+                f"| {r['name']} | {step_name(r)} | {r['dt']:g} "
+                f"| {r['s_per_sim_s']:.3g} | {r['ms_median']:.3g} | {r['ms_min']:.3g}-{r['ms_max']:.3g} "
+                f"| {fmt(r.get('newton_per_step'), '.2g')} | {fmt(r.get('iters_per_step'))} "
+                f"| {fmt(r.get('ns_per_tet_iter'), '.0f')} | {r['rotation_ms']:.3g} "
+                f"| {fmt(r.get('line_search_steps'), 'd')} | {fmt(r.get('energy_limited'), 'd')} "
+                f"| {r['bytes_per_tet']:.0f} | " + " | ".join(fmt(e, ".2e") for e in r["errors"].values())
+                + f" | {r['volume_drift']:.2e} | {fmt(r['energy_drift'], '+.2e')} |")
+        lines += ["", direct_split(s)]
+        lines += ["", "Frontier (no variant is both faster per simulated second and more accurate): "
+                  + ", ".join(frontier(s)) + "."]
+    lines += ["", "![error against wall time per simulated second](accuracy_vs_time.png)", ""]
+    return "\n".join(lines)
+
+
+# What limits each speed target that a run does not meet (profiles taken on the 2-core machine).
+LIMITS = {
+    "warm": "a warm start of epcot (profiled): Python's imports 0.3 s, starting Taichi 0.17 s, building the "
+            "Simulation 0.3 s, the first Newton step 1.45 s and the summary 0.25 s. Of these about 2 s are "
+            "kernels, half in each of two stages that run even when the offline cache has the kernel: "
+            "Taichi's frontend translating its Python (the gradient and energy, the rotations, PCG and the "
+            "summary's measurements 0.15 to 0.3 s each), and loading it: Taichi 1.7's CPU backend caches "
+            "LLVM IR, not machine code, so LLVM optimises and compiles each of the 40 kernels again, about "
+            "15 ms for the smallest and 0.14 s for PCG's. 2 s would need far fewer, smaller kernels",
+    "rotation": "on box50k, reading a tet's corners and Bm, forming F and writing Bm R^T and the quaternion "
+                "alone takes about 12 ns/tet on 2 cores; started from the last step's turn, one certified "
+                "Newton step on the polar decomposition finds R (two from the last R alone), and its scalar "
+                "arithmetic (F R^T, the Hessian's adjugate, the error bound) takes the rest: 15 ns/tet leaves "
+                "no room for it on this machine",
+    "fixed": "rotation extraction, once per step (and once per line-search trial with Newton). The worst "
+             "scene is box10k, 1.1 of 5.3 ms: there the rotation pass takes about 100 ns/tet, where box50k's "
+             "takes 50, because on this virtual machine a parallel loop of about a millisecond mostly runs on "
+             "one thread (the second vCPU takes about that long to wake): box10k's pass takes 0.95 ms on "
+             "average with two threads, 0.98 ms with one, and 0.48 ms at best",
+    "box50k": "the extrapolated first guess and the two-level preconditioner leave about 8 PCG iterations at "
+              "1e-3 (24 with block Jacobi from v_n), each about 1.1 ms (the coarse level adds 0.25 ms to block "
+              "Jacobi's 0.9); the rest is the step's fixed work, about 6 ms: rotations 2.5, the first product "
+              "and the start of PCG 1, the gradient 0.9, the block-Jacobi build 0.3 (1 ms, one step in four), "
+              "and a dozen small passes; the machine's spread between runs is about 10 %",
+    "newton": "2.35 Newton iterations a step at 1e-3, each with its own PCG solve and a line-search trial "
+              "with its own rotation extraction, then energy and gradient in one pass (float64 sums). Kernel "
+              "profile of a box50k Newton step (about 33 ms): rotations 8.2 ms (three passes), energy and "
+              "gradient 8.4, PCG 10 (about 10 iterations), the first products 2.9, the block-Jacobi build 1, "
+              "the energy before and after 1.1. Tried: blocks rebuilt only when stale (as the one-solve step "
+              "does) need 14.7 -> 22.3 PCG iterations a step on epcot, as the twist term moves with the "
+              "stretch; a tighter forcing term (0.03) saves half a Newton iteration on box50k and costs as "
+              "much in PCG. Newton buys the promise that energy never rises, not accuracy",
+    "stiff": "as box50k: iterations (about 11, from 41 with block Jacobi) and the step's fixed work",
+    "direct": "the matrix-free step itself (see box50k above); PARDISO's refactorisation on 2 cores is "
+              "what a user would get, symbolic analysis reused",
+    "memory": "per tet: the per-corner buffer of the gather (48 B), Bm and Bm R^T (72 B), the quaternion, last "
+              "turn and twist (32 B), the tet's corners and their adjacency slots (32 B), the damping frame R_n "
+              "(16 B, with stiffness damping), rest volume and body (8 B); per vertex, fourteen vectors (the "
+              "state, CG's and Newton's: 168 B, 49 B/tet on epcot); fields sized to a capacity (5 % unused on "
+              "epcot); on large meshes the two-level preconditioner's dense coarse inverse (up to 768 x 768: "
+              "2.4 MB in f32, 48 B/tet on box50k). 200 B/tet would need Bm R^T recomputed in every CG "
+              "product or the gather's buffer replaced by atomics: both slower, and atomics would add in a "
+              "different order on every run, where runs are now reproducible bit for bit",
+}
+
+
+def targets(results):
+    """The speed targets (issue 12) with what this run measured, met or not, and what limits each."""
+    by_name = {s["name"]: s for s in results["scenes"]}
+    rows = []
+
+    def add(target, goal, value, unit, met, limit):
+        text = "–" if value is None else f"{value:.3g} {unit}"
+        verdict = "not measured" if value is None else "reported" if met is None else "met" if met(value) else "not met"
+        rows.append(f"| {target} | {goal} | {text} | {verdict} | {LIMITS.get(limit, '') if verdict == 'not met' else ''} |")
+
+    start = results.get("startup", {})
+    add("start-up, warm cache", "<= 2 s", start.get("warm_s"), "s", lambda v: v <= 2, "warm")
+    add("start-up, cold cache", "(reported)", start.get("cold_s"), "s", None, "")
+    add("second Simulation, same kind, to its first step", "<= 0.3 s", start.get("second_s"), "s",
+        lambda v: v <= 0.3, "")
+    add("second Simulation beside a live one", "(reported)", start.get("beside_s"), "s", None, "")
+    add("`view`, first frame (the scene at rest), warm cache", "<= 3 s", start.get("view_first_s"), "s",
+        lambda v: v <= 3, "")
+    add("`view`, first stepped frame, warm cache", "(reported)", start.get("view_stepped_s"), "s", None, "")
+    box = by_name.get("box50k")
+    row = box and find(box, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=1e-3)
+    if row:
+        add("rotation extraction, box50k", "<= 15 ns/tet", 1e6 * row["rotation_ms"] / box["tets"], "ns/tet",
+            lambda v: v <= 15, "rotation")
+        add("box50k corotational, PCG 1e-3, one-solve step", ">= 60 steps/s", 1e3 / row["ms_median"], "steps/s",
+            lambda v: v >= 60, "box50k")
+        newton = find(box, method="corotational", solver="pcg", step="newton", dt_factor=1, tolerance=1e-3)
+        add("box50k corotational, PCG 1e-3, Newton step", ">= 60 steps/s", newton and 1e3 / newton["ms_median"],
+            "steps/s", lambda v: v >= 60, "newton")
+    shares = [100 * r["rotation_ms"] / r["ms_median"] for s in results["scenes"]
+              if (r := find(s, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=1e-3))]
+    add("corotation's fixed work, one-solve step at PCG 1e-3, worst scene", "<= 5 %", max(shares, default=None),
+        "%", lambda v: v <= 5, "fixed")
+    stiff = results.get("stiff")
+    if stiff:
+        chosen = stiff["preconditioners"][stiff["preconditioners"]["auto"]]
+        add(f"stiff bar ({stiff['name']}, E {stiff['E']:g} Pa, nu {stiff['nu']:g}) corotational, PCG 1e-3, "
+            "one-solve step", ">= 30 steps/s", chosen["steps_per_s"], "steps/s", lambda v: v >= 30, "stiff")
+    resting = start.get("resting_ms")
+    add("a scene whose bodies all rest (epcot), share of an awake step", "<= 5 %",
+        resting and 100 * resting[0] / resting[1], "%", lambda v: v <= 5, "")
+    if box and any(r["solver"] == "direct" for r in box["variants"]):
+        ratio = direct_comparison(box)[1]
+        fastest = next(r for r in box["variants"] if r["solver"] == "direct")["backend"]
+        add(f"direct baseline ({fastest}) over the matrix-free step, box50k", ">= 30 x", ratio[fastest], "x",
+            lambda v: v >= 30, "direct")
+    epcot = by_name.get("epcot")
+    row = epcot and baseline(epcot, "corotational", "newton")
+    add("memory, epcot, model + state + solver", "<= 200 B/tet", row and row["bytes_per_tet"], "B/tet",
+        lambda v: v <= 200, "memory")
+    return ["## Targets", "",
+            "Measured in this run (start-up: `app/bench/startup.py`, medians of 3; the window on $DISPLAY or, "
+            "without one, a virtual display, Xvfb). No GPU was available.", "",
+            "| target | goal | measured | verdict | what limits it |", "|---|---|---:|---|---|", *rows, ""]
+
+
+def preconditioner_table(results):
+    """Block Jacobi against two-level PCG per scene, and what "auto" picks."""
+    rows = [(s["name"], s["vertices"], s["preconditioners"]) for s in results["scenes"] if "preconditioners" in s]
+    if "stiff" in results:
+        stiff = results["stiff"]
+        rows.append((f"{stiff['name']}, E {stiff['E']:g} Pa, nu {stiff['nu']:g}",
+                     next((s["vertices"] for s in results["scenes"] if s["name"] == stiff["name"]), None),
+                     stiff["preconditioners"]))
+    if not rows:
+        return []
+    lines = ["## Preconditioners", "",
+             f"Corotational, one-solve step, PCG {sci(PRECONDITIONER_TOLERANCE)}, the scene's dt; the two "
+             "preconditioners stepped in turn (two Simulations), so both see the same machine load. *ratio*: "
+             "two-level ms over block Jacobi ms. The default, \"auto\", takes the two-level one from "
+             f"{TWO_LEVEL_VERTICES} vertices up.", "",
+             "| scene | vertices | block Jacobi ms/step | iters | two-level ms/step | iters | ratio | auto picks |",
+             "|---|---:|---:|---:|---:|---:|---:|---|"]
+    for name, vertices, p in rows:
+        jacobi, two = p["jacobi"], p["two-level"]
+        lines.append(f"| {name} | {fmt(vertices, 'd')} | {jacobi['ms_median']:.3g} | {jacobi['iters_per_step']:.3g} "
+                     f"| {two['ms_median']:.3g} | {two['iters_per_step']:.3g} "
+                     f"| {two['ms_median'] / jacobi['ms_median']:.2f} | {p['auto']} |")
+    return lines + [""]
+
+
+def direct_split(scene):
+    """Where a direct step's time goes, per solver and method."""
+    parts = []
+    for r in scene["variants"]:
+        if r["solver"] == "direct":
+            once = "" if r["backend"] == "superlu" else f" (and once, the pattern's analysis: {r['analysis_ms']:.3g})"
+            parts.append(f"{r['name']}: rotations {r['rotation_ms']:.3g}, assembly {r['assembly_ms']:.3g}, "
+                         f"factorisation {r['factorise_ms']:.3g}, forces and solve {r['solve_ms']:.3g}{once}")
+    return "Direct steps, ms (medians): " + "; ".join(parts) + "."
+
+
+def write(results, out, names=RESULT_FILES):
+    out = Path(out)
+    with atomic_open(out / names["json"]) as f:
+        json.dump(results, f, indent=1)
+    with atomic_open(out / names["md"]) as f:
+        f.write(markdown(results))
+    with atomic_open(out / names["plot"], "wb") as f:
+        plot(results, f)

@@ -1,0 +1,48 @@
+"""`main.py view`: the interactive window (Taichi GGUI); the window itself is app/window/."""
+
+import sys
+
+import fem
+from app import EXIT_INTERRUPTED, device
+from app.display import display_problem
+from app.files import atomic_open, refuse_overwrite
+from app.window.viewer import Viewer
+
+
+def run(args) -> int:
+    check_display()
+    width, height = parse_size(args.size)
+    to_file = args.stats is not None and args.stats != "-"
+    if to_file:
+        refuse_overwrite(args.stats, args.overwrite)
+    device.start(args)
+    viewer = Viewer(args, width, height)
+    try:
+        if to_file:
+            with atomic_open(args.stats, keep_if_interrupted=True) as stats_file:
+                viewer.loop(stats_file)
+        else:
+            viewer.loop(sys.stdout if args.stats == "-" else None)
+    except KeyboardInterrupt:
+        viewer.stop_video()
+        kept = f"; kept the {viewer.frame} complete rows in {args.stats}" if to_file else ""
+        print(f"interrupted at frame {viewer.frame}{kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
+
+
+def check_display():
+    """FemError unless a display is there: GLFW ends the process when it cannot open one."""
+    problem = display_problem()
+    if problem is not None:
+        raise fem.FemError(f"view: {problem}")
+
+
+def parse_size(text):
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise fem.FemError(f"--size: expected WIDTHxHEIGHT, e.g. 1280x720, got {text!r}") from None
+    if not (160 <= width <= 8192 and 120 <= height <= 8192):
+        raise fem.FemError(f"--size: {width}x{height} is out of range (160x120 to 8192x8192)")
+    return width, height

@@ -1,0 +1,139 @@
+"""The window's side panel and help: a part of `Viewer` (app/window/viewer.py), whose attributes
+it reads and sets through the panel's buttons, checkboxes and sliders."""
+
+from pathlib import Path
+
+import numpy as np
+import taichi as ti
+
+PANEL_WIDTH = 0.29              # of the window's width, on the right
+HELP = """\
+left click      push the body along the view ray
+left drag       push along the drag (longer = harder)
+right drag      orbit
+shift+right or middle drag    pan
+ctrl+right drag or up/down    zoom
+f   frame the scene again      c   linear <-> corotational
+space  pause     n  one step   r   reset the scene
+v   start/stop video (mp4)     p   screenshot (png)
+l   PCG preconditioner: auto -> two-level -> block Jacobi
+scenes: the numbered list in the panel
+h   this help                  Esc quit"""
+
+
+class Panel:
+    """The panel and the help window of the Viewer (a mixin: the Viewer holds the state)."""
+
+    def draw_panel(self):
+        with self.gui.sub_window("softfem", 1 - PANEL_WIDTH, 0.0, PANEL_WIDTH, 1.0) as g:
+            g.text(f"{self.sim.scene.name}")
+            g.text(f"{self.sim.model.n_tets} tets, {self.sim.model.n_vertices} vertices   [h] help")
+            if self.message:
+                g.text(self.message)
+            if g.button("run" if self.paused else "pause"):
+                self.paused = not self.paused
+            if g.button("step"):
+                self.paused = True
+                self.sim.step()
+            if g.button("reset"):
+                self.reset()
+            for section in (self.draw_stats, self.draw_methods, self.draw_impulse, self.draw_colors,
+                            self.draw_solver, self.draw_material, self.draw_scenes):
+                g.text("")
+                section(g)
+
+    def draw_stats(self, g):
+        s = self.stats
+        g.text("Numbers")
+        g.text(f"{self.fps:5.1f} fps, {self.steps_last_frame} step(s)/frame, t = {s['t']:.2f} s"
+               + ("  PAUSED" if self.paused else ""))
+        g.text(f"ms/step: rotations {s.get('rotation_ms', 0):.1f}, solve {s.get('solve_ms', 0):.1f}")
+        g.text(f"ms/frame rendering: {self.render_ms:.1f}")
+        residual = s.get("residual")
+        preconditioner = f" ({s['preconditioner']})" if s.get("preconditioner") else ""
+        g.text(f"{s.get('solver', self.sim.settings.method)}{preconditioner}: {s.get('solver_iters', 0)} iterations, "
+               f"residual {residual if residual is not None else float('nan'):.1e}"
+               + ("" if s.get("converged", True) else "  NOT CONVERGED"))
+        for body, ratio in zip(self.sim.model.bodies, s["volume_ratio"]):
+            g.text(f"volume {100 * ratio:6.1f} %  {body.name}")
+        g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
+        g.text(f"inverted tets: {s['inverted_tets']}")
+
+    def draw_methods(self, g):
+        g.text("Method  (c toggles all)")
+        methods = self.methods()
+        all_corotational = all(m == "corotational" for m in methods)
+        if g.checkbox("corotational (all bodies)", all_corotational) != all_corotational:
+            self.toggle_corotation()
+            return
+        wanted = ["corotational" if g.checkbox(f"{i}: {b.name}", m == "corotational") else "linear"
+                  for i, (b, m) in enumerate(zip(self.sim.model.bodies, methods))]
+        if wanted != methods:
+            self.set_methods(wanted)
+
+    def draw_impulse(self, g):
+        g.text("Click impulse")
+        self.strength = g.slider_float("strength [m/s]", self.strength, 0.0, 5.0 * self.size)
+        self.radius = g.slider_float("radius [m]", self.radius, 0.01 * self.size, 0.5 * self.size)
+
+    def draw_colors(self, g):
+        g.text("Colour")
+        for mode in ("body", "volume", "strain"):
+            if g.checkbox(f"{mode}", self.coloring.mode == mode) and self.coloring.mode != mode:
+                self.set_color_mode(mode)
+        if self.coloring.mode == "volume":
+            g.text(f"volume ratio J: blue {self.coloring.vmin}, grey 1, red {self.coloring.vmax}")
+        elif self.coloring.mode == "strain":
+            g.text(f"strain energy 0 .. {self.coloring.vmax:.3g} J/m^3 (grows, never shrinks)")
+
+    def draw_solver(self, g):
+        """Solver settings; the engine reads them at every step."""
+        g.text("Solver")
+        settings, effects = self.sim.settings, self.sim.scene.effects
+        if g.button(f"solver: {settings.method} (switch)"):
+            settings.method = "jacobi" if settings.method == "pcg" else "pcg"
+        if settings.method == "pcg":
+            chosen = self.sim.solver.preconditioner
+            name = settings.preconditioner + (f" ({chosen})" if settings.preconditioner == "auto" else "")
+            if g.button(f"preconditioner: {name} (l)"):
+                self.next_preconditioner()
+        exponent = g.slider_int("tolerance 1e-k", round(-np.log10(settings.tolerance)), 1, 10)
+        settings.tolerance = 10.0 ** -exponent
+        settings.max_iterations = g.slider_int("max iterations", settings.max_iterations, 1, 1000)
+        settings.dt = max(g.slider_float("dt [s]", settings.dt, 0.001, 0.05), 1e-4)
+        effects.alpha = g.slider_float("damping alpha", effects.alpha, 0.0, 2.0)
+        effects.beta = g.slider_float("damping beta", effects.beta, 0.0, 0.5)
+
+    def draw_scenes(self, g):
+        g.text("Scenes")
+        for number, ref in enumerate(self.scene_refs[:9], start=1):
+            if g.button(f"{number} {Path(str(ref)).stem}"):
+                self.switch_scene(ref)
+
+    def draw_material(self, g):
+        """E and nu of one body, applied when the slider is let go (changing them rebuilds
+        the preconditioner, and each drag position would otherwise be a new material)."""
+        bodies = self.sim.model.bodies
+        g.text("Material")
+        if len(bodies) > 1:
+            self.material_body = g.slider_int("body", self.material_body, 0, len(bodies) - 1)
+        material = bodies[self.material_body].material
+        body, E, nu = self.material_edit or (self.material_body, material.E, material.nu)
+        if body != self.material_body:
+            body, E, nu = self.material_body, material.E, material.nu
+        log_E = g.slider_float("log10 E [Pa]", float(np.log10(E)), 1.0, 8.0)
+        nu = g.slider_float("nu", nu, 0.0, 0.49)
+        E = 10.0 ** log_E
+        g.text(f"{bodies[body].name}: E = {E:.4g} Pa, nu = {nu:.3f}")
+        changed = not (np.isclose(E, material.E) and np.isclose(nu, material.nu))
+        self.material_edit = (body, E, nu) if changed else None
+        if changed and not self.window.is_pressed(ti.ui.LMB):
+            self.sim.set_material(body, E, nu)
+            self.events.append({"type": "material", "body": body, "E": E, "nu": nu})
+            self.material_edit = None
+
+    def draw_help(self):
+        lines = HELP.splitlines()
+        with self.gui.sub_window("help (h to close)", 0.05, 0.1, 0.6, 0.045 * len(lines) + 0.06) as g:
+            for line in lines:
+                g.text(line)
