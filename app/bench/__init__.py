@@ -1,0 +1,47 @@
+"""`main.py bench`: what accuracy costs in time.
+
+Every scene first runs a reference: corotational backward Euler at a small time step
+(dt_ref = the scene's dt / 8, 0.0025 s for the seed scenes), Newton iterated to 1e-10
+with PCG at 1e-10 and SVD rotations, always in float64. Then every variant runs from
+the same start for the same simulated time:
+
+    corotational, Newton step and one-solve ("single") step, each with
+        PCG 1e-4 at dt = 2, 1, 1/2, 1/4 x the scene's dt     (the dt axis)
+        PCG 1e-2, 1e-3, 1e-6 at the scene's dt               (the tolerance axis)
+    linear: the same, once (one Newton iteration solves a linear body exactly)
+    both methods, one-solve step at the scene's dt:
+        Jacobi iteration at 10, 30, 100 iterations           (matrix-free, fem.solver)
+        direct sparse solvers                                (assembled and factorised, app.bench.direct):
+            the fastest installed (MKL PARDISO with the fast-direct extra), its analysis of the
+            pattern made once and the matrix refactorised every step, and SuperLU, from
+            scratch every step (the coursework's way)
+
+A variant's error is its RMS position distance to the reference at checkpoint times
+that every dt divides. The reference has an error of its own, O(dt_ref) like any
+backward Euler run: the distance between it and a second run at 2 dt_ref estimates
+it (for a first-order method the two differ by about the reference's own error). That
+floor is where the error axis bottoms out; errors near it are measured too low (a variant
+at dt shows about (dt - dt_ref) / dt of its true error, half of it at dt = 2 dt_ref), so a
+variant meets the error goal only when its error plus the floor does. dt_ref = the
+smallest variant dt / 8 would lower the floor 4 times, but the reference, already the
+dearest run of a scene, would cost 4 times more: the scene's dt / 8 keeps a full run
+affordable.
+
+A variant's cost is the wall time of a step, measured after warm-up (Taichi compiles
+its kernels on first use), and the wall time per simulated second (ms per step / dt),
+which compares runs at different dt.
+Outputs: results.md (tables), results.json (every number), accuracy_vs_time.png; with --docs,
+the pages in docs/ instead: benchmark.md, benchmark.json (from which `main.py figures` redraws
+the plot) and accuracy_vs_time.png.
+
+The parts, in the order a run goes through them:
+
+    plan.py         what to run: the plans, the variants, the reference's settings, the scenes
+    measure.py      running them: a variant, the reference, a scene, the preconditioners, the machine
+    conclusions.py  what the rows say: errors against the reference, the goal, the headline
+    report.py       the files: results.md (tables, targets), results.json, and the plot (plot.py)
+    direct.py       the direct baseline, an assembled sparse solver outside the engine
+    startup.py      what a user waits before the first step
+
+`main.py bench` itself is app/commands/bench.py.
+"""

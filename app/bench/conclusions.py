@@ -1,0 +1,166 @@
+"""What the benchmark's rows say: errors against the reference, the error goal, the cheapest run
+within it, the direct baseline, and the headline sentences."""
+
+import statistics
+from collections import Counter
+
+from app.bench import direct
+from app.bench.plan import (BASELINE_TOLERANCE, DIRECT_TARGET, DIRECT_TOLERANCE, DT_FACTORS, ERROR_GOAL,
+                            PCG_TOLERANCES, REFERENCE_REFINEMENT, sci)
+
+# ---------------------------------------------------------------- conclusions
+
+def find(scene, **fields):
+    """The first row whose fields have these values, or None."""
+    return next((r for r in scene["variants"] if all(r[k] == v for k, v in fields.items())), None)
+
+
+def final_error(row):
+    return list(row["errors"].values())[-1]
+
+
+def baseline(scene, method, step, solver="pcg"):
+    """The row at the scene's dt with the default tolerance (PCG), or the solver alone (direct: the fastest)."""
+    if solver != "pcg":
+        return find(scene, method=method, solver=solver)
+    return find(scene, method=method, solver="pcg", step=step, dt_factor=1, tolerance=BASELINE_TOLERANCE)
+
+
+def corotation_cost(scene, step, solver="pcg"):
+    """Extra time per step of corotational over linear FEM, in %."""
+    corot, linear = baseline(scene, "corotational", step, solver), baseline(scene, "linear", "newton", solver)
+    return 100 * (corot["ms_median"] / linear["ms_median"] - 1)
+
+
+def meets_goal(row, scene):
+    """Error plus the reference's own error (so a bound on the true error) within the goal."""
+    error = final_error(row)
+    return error is not None and error + scene["reference_floor"] <= ERROR_GOAL
+
+
+def goal_dt(scene, step):
+    """The largest dt of the corotational dt axis (PCG at the default tolerance) that meets the goal."""
+    rows = [find(scene, method="corotational", solver="pcg", step=step, dt_factor=f, tolerance=BASELINE_TOLERANCE)
+            for f in DT_FACTORS]
+    return next((r["dt"] for r in rows if meets_goal(r, scene)), None)
+
+
+def cheapest_to_goal(scene, step):
+    """The corotational PCG row of this step kind that meets the goal in the least time per simulated second."""
+    rows = [r for r in scene["variants"] if r["method"] == "corotational" and r["solver"] == "pcg"
+            and r["step"] == step and meets_goal(r, scene)]
+    return min(rows, key=lambda r: r["s_per_sim_s"], default=None)
+
+
+def frontier(scene):
+    """Variants no other variant beats in both time per simulated second and accuracy (at the last checkpoint)."""
+    rows = [r for r in scene["variants"] if r["solver"] != "reference" and final_error(r) is not None]
+    return [r["label"] for r in sorted(rows, key=lambda r: r["s_per_sim_s"])
+            if not any(o["s_per_sim_s"] < r["s_per_sim_s"] and final_error(o) <= final_error(r) for o in rows)]
+
+
+def direct_comparison(scene):
+    """The matrix-free corotational one-solve step at PCG 1e-3 (at the baseline tolerance when the tolerance
+    axis lacks 1e-3) against the direct baseline: a sentence, and {solver: direct ms per step / matrix-free ms
+    per step} with "factorisation" (the fastest's alone)."""
+    tolerance = DIRECT_TOLERANCE if DIRECT_TOLERANCE in PCG_TOLERANCES else BASELINE_TOLERANCE
+    matrix_free = find(scene, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=tolerance)
+    rows = [r for r in scene["variants"] if r["method"] == "corotational" and r["solver"] == "direct"]
+    ms = matrix_free["ms_median"]
+    ratios = {r["backend"]: r["ms_median"] / ms for r in rows}
+    fastest = rows[0]
+    ratios["factorisation"] = fastest["factorise_ms"] / ms
+    role = "the fastest direct solver installed" if fastest["backend"] != "superlu" else "the direct solver"
+    sentence = (f"On {scene['name']} ({scene['tets']} tets) the matrix-free corotational one-solve step at PCG "
+                f"{sci(tolerance)} takes {ms:.3g} ms; {role}, {direct.BACKENDS[fastest['backend']].label} "
+                f"refactorising every step, takes {ratios[fastest['backend']]:.2g} times as long "
+                f"({fastest['ms_median']:.3g} ms; its factorisation alone {fastest['factorise_ms']:.3g} ms, "
+                f"{ratios['factorisation']:.2g} times)")
+    if len(rows) > 1:
+        sentence += f", SuperLU {ratios['superlu']:.2g} times ({rows[1]['ms_median']:.3g} ms)"
+    exact = fastest if final_error(fastest) is not None else find(     # a direct run stopped by the budget
+        scene, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=min(PCG_TOLERANCES))
+    sentence += (f"; the matrix-free step's position error {final_error(matrix_free):.2e}, the exact solve's "
+                 f"{final_error(exact):.2e}" + ("" if exact is fastest else f" (at PCG {sci(exact['tolerance'])})"))
+    met = "met" if ratios[fastest["backend"]] >= DIRECT_TARGET else "not met"
+    return sentence + f". Target: at least {DIRECT_TARGET} times, {met}.", ratios
+
+
+def spread(values, spec=".2f"):
+    """'lo to hi' of several values ('' for one)."""
+    return f"{min(values):{spec}} to {max(values):{spec}}" if len(values) > 1 else ""
+
+
+def median_ratio(pairs):
+    """(median of a / b, every a / b) over the pairs where both are known and non-zero."""
+    ratios = [a / b for a, b in pairs if a and b]
+    return (statistics.median(ratios), ratios) if ratios else (None, [])
+
+
+def where_met(dts):
+    """'reaches it at dt 0.04 s in 2 of 4 scenes, 0.01 s in 1, never in 1', from the largest dt meeting
+    the goal in each scene (None: none does)."""
+    counts = Counter(dts)
+    found = sorted((d for d in counts if d is not None), reverse=True)
+    if not found:
+        return "never reaches it" if len(dts) == 1 else f"reaches it in none of the {len(dts)} scenes"
+    if len(dts) == 1:
+        return f"reaches it at dt {found[0]:g} s"
+    parts = [f"{d:g} s in {counts[d]}" for d in found] + ([f"never in {counts[None]}"] if None in counts else [])
+    return f"reaches it at dt {parts[0]} of {len(dts)} scenes" + "".join(f", {p}" for p in parts[1:])
+
+
+def headline(scenes):
+    """The measured answers, as sentences and as numbers."""
+    n, last = len(scenes), scenes[0]["checkpoints"][-1]
+    dts = sorted({s["dt"] for s in scenes})
+    at_dt = f"dt {dts[0]:g} s" if len(dts) == 1 else "each scene's dt"
+    newton = [baseline(s, "corotational", "newton") for s in scenes]
+    single = [baseline(s, "corotational", "single") for s in scenes]
+    time_ratio, times = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in zip(newton, single))
+    error_ratio, errors = median_ratio((final_error(a), final_error(b)) for a, b in zip(newton, single))
+    goal = {step: [goal_dt(s, step) for s in scenes] for step in ("newton", "single")}
+    cheapest = [(cheapest_to_goal(s, "newton"), cheapest_to_goal(s, "single")) for s in scenes]
+    pays, pay_ratios = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in cheapest if a and b)
+    floors = [s["reference_floor"] for s in scenes]
+    numbers = {
+        "newton_over_single_time": time_ratio, "newton_over_single_error": error_ratio,
+        "goal_dt": goal,     # per scene, in order: the largest dt meeting the goal (None: none does)
+        "cheapest_to_goal_newton_over_single": pays,
+        "corotation_cost_single_pct": statistics.median(corotation_cost(s, "single") for s in scenes),
+        "corotation_cost_newton_pct": statistics.median(corotation_cost(s, "newton") for s in scenes),
+        "corotation_cost_direct_pct": statistics.median(corotation_cost(s, "single", "direct") for s in scenes),
+        "reference_floor": statistics.median(floors),
+    }
+    over = f"; medians over {n} scenes, {spread(times)} and {spread(errors)} times" if n > 1 else ""
+    lines = [f"A correct step costs: Newton takes {fmt(time_ratio, '.2f')} times the wall time per simulated "
+             f"second of the one-solve step and leaves {fmt(error_ratio, '.2f')} times its error (corotational, "
+             f"PCG {sci(BASELINE_TOLERANCE)}, {at_dt}{over})."]
+    sentence = (f"Within the error goal ({100 * ERROR_GOAL:g} % of the scene size at t = {last:g} s, the "
+                f"reference's own error counted in), at PCG {sci(BASELINE_TOLERANCE)}: Newton "
+                f"{where_met(goal['newton'])}; the one-solve step {where_met(goal['single'])}.")
+    if pays is not None:
+        both = ("" if n == 1 else f" (median over the {len(pay_ratios)} scenes where both meet it)"
+                if len(pay_ratios) > 1 else " (in the one scene where both meet it)")
+        sentence += (f" The cheapest corotational run within it takes {pays:.2f} times the wall time per simulated "
+                     f"second with Newton as with the one-solve step{both}: "
+                     + ("Newton pays." if pays < 1 else "Newton does not pay at this goal."))
+    lines.append(sentence)
+    largest = max(scenes, key=lambda s: s["tets"])
+    sentence, numbers["direct_over_matrix_free"] = direct_comparison(largest)
+    lines.append(sentence)
+    lines.append(f"Corotation costs {numbers['corotation_cost_single_pct']:.0f} % more per step than linear with "
+                 f"the matrix-free one-solve step (PCG {sci(BASELINE_TOLERANCE)}), "
+                 f"{numbers['corotation_cost_newton_pct']:.0f} % with Newton and "
+                 f"{numbers['corotation_cost_direct_pct']:.0f} % with the fastest direct solver"
+                 + (" (medians)." if n > 1 else "."))
+    dt_ref = f" = {scenes[0]['reference_dt']:g} s" if len(dts) == 1 else ""
+    floor_range = f" (median; {spread(floors, '.1e')})" if n > 1 else ""
+    lines.append(f"The reference (Newton to 1e-10 in f64 at dt_ref = dt / {REFERENCE_REFINEMENT}{dt_ref}) "
+                 f"differs from a run at 2 dt_ref by {numbers['reference_floor']:.1e}{floor_range}: the error "
+                 "axis bottoms out there, and errors near it are measured up to 2 times too low.")
+    return lines, numbers
+
+
+def fmt(value, spec=".3g", missing="–"):
+    return missing if value is None else format(value, spec)

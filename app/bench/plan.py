@@ -1,0 +1,137 @@
+"""What the benchmark runs: the plans, the variants of a scene, the reference's settings, the scenes."""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import scenes
+from app.bench import direct
+from assets.generators import box
+from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
+
+DT_FACTORS = (2, 1, 0.5, 0.25)   # the dt axis, times the scene's dt (0.04 to 0.005 s for the seed scenes)
+PCG_TOLERANCES = (1e-2, 1e-3, 1e-4, 1e-6)
+JACOBI_ITERATIONS = (10, 30, 100)
+BASELINE_TOLERANCE = 1e-4        # the scenes' default PCG tolerance: the dt axis and the comparisons use it
+DIRECT_TOLERANCE = 1e-3          # the matrix-free step set against the direct baseline: as accurate as an
+                                 # exact solve of the same step (the 1e-3 and 1e-6 rows' errors agree)
+DIRECT_TARGET = 30               # issue 12: the matrix-free step at least 30 times faster than the fastest direct one
+MAX_ITERATIONS = 1000            # PCG: the tolerance, not the cap, ends a solve
+REFERENCE_REFINEMENT = 8         # dt_ref = the scene's dt / 8
+REFERENCE_SETTINGS = dict(step="newton", method="pcg", tolerance=1e-10, newton_tolerance=1e-10,
+                          max_newton=50, rotations="svd")
+ERROR_GOAL = 1e-2                # accurate enough: RMS position error under 1 % of the bounding-box diagonal
+                                 # (against a converged reference backward Euler's own error dominates, and
+                                 # 0.1 % lies below the reference's floor on the spinning bars)
+MIN_TIMED_STEPS = 3              # a variant stopped by the time budget still times this many steps
+BOXES = {"box80": 2, "box1k": 5, "box10k": 10, "box50k": 17}   # 2 x 1 x 1 m bar, 2k x k x k cells
+
+
+@dataclass
+class Plan:
+    """How much to measure."""
+
+    scenes: list          # built-in names, scene files or BOXES names
+    checkpoints: tuple    # s: positions are compared with the reference at these times (rounded to a
+                          # multiple of the largest dt); the last ends a run
+    warmup_steps: int     # first steps of every run left out of the timings
+    budget_s: float       # a variant whose run would take longer stops early (the reference never does)
+    startup: str = ""     # a scene whose start-up and resting cost are measured too ("": none)
+    stiff: str = ""       # a BOXES bar also compared, made STIFF, on preconditioners alone ("": none)
+    preconditioner_steps: int = 30   # steps of each preconditioner in their comparison
+
+
+def full_plan():
+    return Plan([*scenes.builtin_scenes(), "box1k", "box10k", "box50k"], (0.4, 1.0, 2.0), 2, 120.0, "epcot",
+                "box50k")
+
+
+QUICK = Plan(["cube86", "box1k"], (0.4, 1.0), 2, 20.0)
+TEST = Plan(["box80"], (0.08, 0.2), 2, 10.0, stiff="box80", preconditioner_steps=3)   # tests: seconds
+
+
+@dataclass(frozen=True)
+class Variant:
+    method: str               # "linear" | "corotational"
+    solver: str               # "reference" | "pcg" | "jacobi" | "direct"
+    step: str = "single"      # "newton" | "single"; a linear body takes the same step either way
+    dt_factor: float = 1      # its dt: this times the scene's dt
+    tolerance: float = 0.0    # pcg, reference
+    iterations: int = 0       # jacobi
+    backend: str = ""         # direct: a name in app.bench.direct.BACKENDS
+
+    @property
+    def name(self):
+        """What it solves with, e.g. "corotational PCG 1e-4"."""
+        if self.solver == "reference":
+            return "reference" if self.dt_factor == 1 / REFERENCE_REFINEMENT else "reference at 2 dt_ref"
+        if self.solver == "direct":
+            return f"{self.method} direct ({direct_role(self.backend)})"
+        setting = {"pcg": f"PCG {sci(self.tolerance)}", "jacobi": f"Jacobi x{self.iterations}"}[self.solver]
+        return f"{self.method} {setting}"
+
+    def dt(self, scene_dt):
+        return self.dt_factor * scene_dt
+
+    @property
+    def step_name(self):
+        return "exact" if self.method == "linear" else {"newton": "Newton", "single": "single"}[self.step]
+
+
+REFERENCES = [Variant("corotational", "reference", "newton", k / REFERENCE_REFINEMENT,
+                      REFERENCE_SETTINGS["tolerance"]) for k in (1, 2)]   # the reference, and at 2 dt_ref
+
+
+def direct_backends():
+    """The direct baseline: the fastest solver installed, and SuperLU, the coursework's (once if they are one)."""
+    return list(dict.fromkeys([direct.fastest_available(), "superlu"]))
+
+
+def direct_role(backend):
+    """'fastest: MKL PARDISO' or 'SuperLU, coursework-like'."""
+    return "SuperLU, coursework-like" if backend == "superlu" else f"fastest: {direct.BACKENDS[backend].label}"
+
+
+def variants():
+    """Every variant but the references, in the order of the tables."""
+    out = []
+    for method, steps in (("corotational", ("newton", "single")), ("linear", ("newton",))):
+        for step in steps:
+            out += [Variant(method, "pcg", step, f, BASELINE_TOLERANCE) for f in DT_FACTORS]
+            out += [Variant(method, "pcg", step, 1, tol) for tol in PCG_TOLERANCES if tol != BASELINE_TOLERANCE]
+        out += [Variant(method, "jacobi", iterations=k) for k in JACOBI_ITERATIONS]
+        out += [Variant(method, "direct", backend=name) for name in direct_backends()]
+    return out
+
+
+def sci(x):
+    """1e-04 -> 1e-4."""
+    return f"{x:.0e}".replace("e-0", "e-").replace("e+0", "e")
+
+
+def step_name(row):
+    return Variant(row["method"], row["solver"], row["step"]).step_name
+
+
+# ---------------------------------------------------------------- scenes
+
+def box_scene(name, k):
+    """A 2 x 1 x 1 m rubber bar of 2k x k x k cells (10 k^3 tets), spinning about y at 2 rad/s and
+    twisting about its long axis: it turns by 4 rad in 2 s, so linear FEM visibly fails."""
+    mesh = place_mesh(box((2.0, 1.0, 1.0), (2 * k, k, k)))
+    scene = Scene(name, [Body("bar", mesh, Material(E=1e5, nu=0.3, density=1000.0))],
+                  description="A 2 x 1 x 1 m rubber bar spinning about y and twisting about its long axis.",
+                  effects=Effects(beta=0.002), solver=SolverSettings(dt=0.02))
+    scene.initial = [Initial(Selection(None), "spin", (np.array([0.0, 1.0, 0.0]), 2.0)),
+                     Initial(Selection(None), "twist", (np.array([1.0, 0.0, 0.0]), 6.0))]
+    return scene
+
+
+def make_scene(ref):
+    return box_scene(ref, BOXES[ref]) if ref in BOXES else scenes.load_scene(ref)
+
+
+def checkpoint_times(plan, dt):
+    """The plan's checkpoints rounded to multiples of the largest dt, so that every dt divides them."""
+    period = max(DT_FACTORS) * dt
+    return [period * max(1, round(t / period)) for t in plan.checkpoints]
