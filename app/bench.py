@@ -10,7 +10,7 @@ the same start for the same simulated time:
         PCG 1e-2, 1e-3, 1e-6 at the scene's dt               (the tolerance axis)
     linear: the same, once (one Newton iteration solves a linear body exactly)
     both methods, one-solve step at the scene's dt:
-        Jacobi iteration at 10, 30, 100 iterations           (matrix-free, fem.solver)
+        Jacobi iteration at 10, 30, 100 iterations           (matrix-free, fem.implicit)
         direct sparse solvers                                (assembled and factorised, app.direct):
             the fastest installed (MKL PARDISO with the fast-direct extra), its analysis of the
             pattern made once and the matrix refactorised every step, and SuperLU, from
@@ -57,7 +57,7 @@ from app.files import atomic_open, check_output, refuse_overwrite
 from app.progress import Progress
 from assets.generators import box
 from fem.errors import FemError
-from fem.solver import TWO_LEVEL_VERTICES
+from fem.implicit.preconditioner import TWO_LEVEL_VERTICES
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
 
 DT_FACTORS = (2, 1, 0.5, 0.25)   # the dt axis, times the scene's dt (0.04 to 0.005 s for the seed scenes)
@@ -258,7 +258,7 @@ def run_variant(sim, variant, times, plan):
             break
     energy = sum_energy(stats)
     memory = (solver.memory_bytes if variant.solver == "direct" else
-              field_bytes(sim.model, sim.state, sim.solver, *filter(None, [sim.solver.patches])))
+              field_bytes(sim.model, sim.state, *sim.solver.parts))
     return {"infos": infos, "snapshots": snapshots, "run_s": time.perf_counter() - start,
             "volume_drift": volume_drift, "energy_drift": energy / energy0 - 1 if energy0 > 0 else None,
             "memory_bytes": memory, "stopped_early": len(infos) < n_steps,

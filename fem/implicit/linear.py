@@ -199,10 +199,10 @@ class LinearSolver:
         for i in range(self.model.vertex_count[None]):
             out[i] = self.potential.apply_H(i, u, cM, cK)
 
-    def apply_preconditioner(self, r, two_level):
-        """P r for a (n, 3) numpy array r, with the preconditioner of the last step."""
+    def apply_preconditioner(self, r, preconditioner):
+        """P r for a (n, 3) numpy array r, with the preconditioner ("jacobi" or "two-level") of the last step."""
         self.model.write(self.r, r)
-        self.preconditioner_product(two_level)
+        self.preconditioner_product(preconditioner == "two-level")
         return self.z.to_numpy()[:self.model.n_vertices].astype(np.float64)
 
     @ti.kernel

@@ -193,10 +193,11 @@ class Newton:
         """A searching body whose E_b fell by at least ARMIJO a_b |slope_b| is done; the others
         halve a_b. Returns how many still search."""
         left = 0
+        E = ti.static(self.potential.body_E)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             if self.searching[b]:
-                if self.potential.body_E[b] <= self.body_E_accepted[b] + ARMIJO * self.body_step[b] * self.body_slope[b]:
+                if E[b] <= self.body_E_accepted[b] + ARMIJO * self.body_step[b] * self.body_slope[b]:
                     self.searching[b] = 0
                 else:
                     self.body_step[b] *= 0.5
