@@ -191,8 +191,9 @@ class Simulation:
     # ------------------------------------------------------------ the engine's maths, for checks
 
     def _work(self, x=None):
-        """The solver's work state holding positions x ((n, 3) numpy) and zero velocities, or
-        (x None) a copy of the current state: every kernel then runs on the same fields."""
+        """The solver's iterate (IncrementalPotential.x, v) holding positions x ((n, 3) numpy) and
+        zero velocities, or (x None) a copy of the current state: every kernel then runs on the
+        same fields."""
         work = self.solver.potential
         if x is None:
             work.begin(self.state.x, self.state.v)
