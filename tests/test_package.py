@@ -20,7 +20,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_pyproject_names_the_packages_the_command_and_the_requirements():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert project["project"]["scripts"] == {"softfem": "app.cli:main"}
-    assert set(project["tool"]["setuptools"]["packages"]) == {"fem", "app", "assets", "scenes"}
+    # every package folder of the four, sub-packages too: setuptools installs only those named
+    folders = {str(init.parent.relative_to(ROOT)).replace(os.sep, ".")
+               for top in ("fem", "app", "assets", "scenes") for init in (ROOT / top).rglob("__init__.py")}
+    assert {"fem", "fem.implicit", "app", "assets", "scenes"} <= folders
+    assert set(project["tool"]["setuptools"]["packages"]) == folders
     # The same dependencies as requirements.txt, which also has the test tools.
     required = {line.split(">")[0].split("=")[0].strip().lower()
                 for line in (ROOT / "requirements.txt").read_text().splitlines()
