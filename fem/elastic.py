@@ -5,7 +5,7 @@ Symbols (Sifakis & Barbic 2012):
     Bm  inverse of the same matrix at rest (3x3), so F = Ds Bm
     W   rest volume (m^3);  mu, lam  Lame parameters (Pa)
     R   polar rotation of F (fem/rotation.py; identity for linear tets)
-The solver uses these through Bm R^T (see fem/solver.py), the stats through R.
+The solver uses these through Bm R^T (see fem/implicit/rotations.py), the stats through R.
 """
 
 import taichi as ti

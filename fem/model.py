@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from fem.elastic import edge_matrix
 from fem.scene import METHODS, Material
 
 
@@ -192,6 +193,12 @@ class Model:
     def lam(self, e):
         """Lame's lambda of tet e's body, Pa."""
         return self.body_lam[self.tet_body[e]]
+
+    @ti.func
+    def edges(self, x: ti.template(), e):
+        """Ds of tet e for the vertex values x (positions, velocities or directions)."""
+        t = self.tets[e]
+        return edge_matrix(x[t[0]], x[t[1]], x[t[2]], x[t[3]])
 
     @ti.func
     def method(self, e):

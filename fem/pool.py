@@ -18,9 +18,18 @@ from dataclasses import dataclass
 import taichi as ti
 
 from fem.coarse import Patches
+from fem.implicit.effects import Effects
+from fem.implicit.elasticity import Elasticity
+from fem.implicit.linear import LinearSolver
+from fem.implicit.newton import Newton
+from fem.implicit.potential import IncrementalPotential
+from fem.implicit.preconditioner import Preconditioner
+from fem.implicit.rotations import Rotations
+from fem.implicit.safeguards import Safeguards
+from fem.implicit.sleep import Sleep
+from fem.implicit.solver import ImplicitSolver, Switches
 from fem.measure import Measure
 from fem.model import Capacity, Model, State
-from fem.solver import ImplicitSolver, Switches
 
 _idle = defaultdict(list)          # (Capacity, Switches) -> Parts nobody uses
 _runtime = [None]                  # the Taichi runtime their fields live in
@@ -61,19 +70,21 @@ def make(capacity, switches):
     model = Model(capacity)
     solver = ImplicitSolver(model, switches)
     made["parts"] += 1
-    return Parts(model, solver, Measure(model, solver.quaternions, switches),
+    return Parts(model, solver, Measure(model, solver.rotations.quaternions, switches),
                  (State(capacity.vertices), State(capacity.vertices)))
 
 
 def compiled_kernels():
     """How many kernels Taichi has compiled (or loaded from its offline cache) in this
     process for the engine: one per kernel and per set of parts it ran on."""
-    classes = (Model, ImplicitSolver, Measure, Patches)
+    classes = (Model, ImplicitSolver, Sleep, Rotations, Elasticity, Effects, IncrementalPotential, Preconditioner,
+               LinearSolver, Newton, Safeguards, Measure, Patches)
     kernels = [f for c in classes for f in vars(c).values() if hasattr(f, "_primal")]
     return sum(len(k._primal.compiled_kernels) for k in kernels)
 
 
 def clear():
-    """Forget every idle part: Taichi restarted (fem.init, ti.init), their fields are gone."""
+    """Forget every idle part: Taichi restarted (fem.init, ti.init), their fields are gone.
+    `borrow` notices a restart by the runtime's identity; fem.runtime need not tell the pool."""
     _idle.clear()
     _runtime[0] = ti.lang.impl.get_runtime()

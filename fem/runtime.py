@@ -44,8 +44,6 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
     with contextlib.redirect_stdout(io.StringIO()):
         ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug,
                 offline_cache=True, offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR)
-    from fem import pool        # the fields of every idle Simulation's parts are gone
-    pool.clear()
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")

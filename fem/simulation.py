@@ -5,7 +5,7 @@
     x = sim.positions()          # (n, 3) numpy
     sim.stats()                  # + energies, volume ratios, inverted tets
 
-The step itself is `ImplicitSolver.step(state_in, state_out, dt)` (fem/solver.py);
+The step itself is `ImplicitSolver.step(state_in, state_out, dt)` (fem/implicit/solver.py);
 two States take turns, and a rejected step is simply not swapped in.
 """
 
@@ -20,7 +20,7 @@ from fem import pool
 from fem.builder import initial_state, model_arrays
 from fem.errors import FemError
 from fem.scene import METHODS, Material, select_vertices
-from fem.solver import StepInfo
+from fem.implicit.solver import StepInfo
 
 # A body sleeps after QUIET_STEPS steps in a row in which no vertex moved more than
 # QUIET_MOTION of the body's size: its velocities are set to 0 and steps leave it exactly
@@ -38,7 +38,7 @@ def add_velocity(v: ti.template(), free: ti.template(), ids: ti.types.ndarray(),
 
 
 class Simulation:
-    """Steps one scene with backward Euler; see fem.solver for the maths.
+    """Steps one scene with backward Euler; see fem.implicit for the maths.
 
     method: None keeps each body's own method, "linear" / "corotational" overrides all.
     solver ("pcg" | "jacobi"), step ("newton" | "single"), dt (s), tolerance,
@@ -86,7 +86,7 @@ class Simulation:
         if not self.settings.sleep:
             return
         speed = np.zeros(len(self.awake))
-        self.solver.body_speeds(self.state.v, speed)
+        self.solver.sleep.body_speeds(self.state.v, speed)
         speed = np.sqrt(speed)
         fell = False
         for b, body in enumerate(self.model.bodies):
@@ -94,7 +94,7 @@ class Simulation:
             self.quiet[b] = self.quiet[b] + 1 if quiet else 0
             if self.quiet[b] >= QUIET_STEPS:
                 self.awake[b], fell = False, True
-                self.solver.hold(self.state.v, body.vertices.start, body.vertices.stop)
+                self.solver.sleep.hold(self.state.v, body.vertices.start, body.vertices.stop)
         if fell:
             self.solver.wake(self.awake)
 
@@ -123,7 +123,7 @@ class Simulation:
     @property
     def coefficients(self):
         """(cM, cK) of the Newton matrix H = cM M + cK K at the current dt."""
-        return self.solver.coefficients(self.settings.dt)
+        return self.solver.potential.coefficients(self.settings.dt)
 
     def step(self):
         """Advance one time step; returns what the step did (dict)."""
@@ -191,9 +191,10 @@ class Simulation:
     # ------------------------------------------------------------ the engine's maths, for checks
 
     def _work(self, x=None):
-        """The solver's work state holding positions x ((n, 3) numpy) and zero velocities, or
-        (x None) a copy of the current state: every kernel then runs on the same fields."""
-        work = self.solver
+        """The solver's iterate (IncrementalPotential.x, v) holding positions x ((n, 3) numpy) and
+        zero velocities, or (x None) a copy of the current state: every kernel then runs on the
+        same fields."""
+        work = self.solver.potential
         if x is None:
             work.begin(self.state.x, self.state.v)
         else:
@@ -214,15 +215,16 @@ class Simulation:
         (identity for linear tets); leaves the solver's rotations there."""
         self._rotate(x)
         m = self.model.n_tets
-        rotated_Bm = self.solver.rotated_Bm.to_numpy()[:m].astype(np.float64)
+        rotated_Bm = self.solver.rotations.rotated_Bm.to_numpy()[:m].astype(np.float64)
         Dm = np.linalg.inv(self.model.Bm.to_numpy()[:m].astype(np.float64))
         return np.transpose(Dm @ rotated_Bm, (0, 2, 1))            # R = (Dm Bm R^T)^T
 
     def forces(self, x=None):
         """(n, 3) elastic forces f(x) = -grad Psi(x) (N) at positions x (None: the current ones)."""
         work = self._rotate(x)
-        self.solver.elastic_forces(work.x, self.solver.Ap)
-        return self.solver.Ap.to_numpy()[:self.model.n_vertices].astype(np.float64)
+        out = self.solver.linear.Ap
+        self.solver.elasticity.elastic_forces(work.x, out)
+        return out.to_numpy()[:self.model.n_vertices].astype(np.float64)
 
     def energy(self, x=None):
         """Elastic energy Psi(x) (J, float64) at positions x (None: the current ones)."""
@@ -235,7 +237,7 @@ class Simulation:
         if cM is None:
             cM, cK = self.coefficients
         self._rotate(x)
-        return self.solver.apply_matrix(np.asarray(u, np.float64), cM, cK)
+        return self.solver.linear.apply_matrix(np.asarray(u, np.float64), cM, cK)
 
     # ------------------------------------------------------------ reading
 

@@ -98,7 +98,7 @@ def preconditioner_reference(sim, r):
     np.add.at(g, patch, np.hstack([f, np.cross(Y, f)]))
     y = (p.coarse_inverse.to_numpy()[:6 * count, :6 * count] @ g.ravel()).reshape(count, 6)
     coarse = np.einsum("nij,nj->ni", R[patch], y[patch, :3] + np.cross(y[patch, 3:], Y))
-    jacobi = np.einsum("nij,nj->ni", solver.block_inverses(), r)
+    jacobi = np.einsum("nij,nj->ni", solver.preconditioning.block_inverses(), r)
     return (jacobi + coarse) * free
 
 
@@ -113,7 +113,7 @@ def test_preconditioner_is_symmetric_positive_definite_and_follows_the_body():
     n = sim.model.n_vertices
     free = sim.model.free_np[:, None]
     u, w = rng.standard_normal((n, 3)) * free, rng.standard_normal((n, 3)) * free   # as CG's r: filtered
-    Pu, Pw = sim.solver.apply_preconditioner(u), sim.solver.apply_preconditioner(w)
+    Pu, Pw = (sim.solver.linear.apply_preconditioner(a, sim.solver.preconditioner) for a in (u, w))
     np.testing.assert_allclose(Pu, preconditioner_reference(sim, u), rtol=1e-10, atol=1e-14)
     assert np.isclose(np.vdot(w, Pu), np.vdot(u, Pw), rtol=1e-10)
     assert np.vdot(u, Pu) > 0

@@ -16,11 +16,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PRODUCT = ("fem", "app", "assets", "scenes")        # packages, plus main.py
 MAX_LINES = 450
-# Issue 22's engine part, done on its own branch (fem/solver.py split into modules): until that
-# merges, its circle and its long module are the only ones allowed. Both checks fail once they are
-# gone, so that these two lines are deleted with them.
-PENDING_CIRCLE = ["fem.runtime", "fem.pool", "fem.solver", "fem.runtime"]
-PENDING_LONG = {"fem/solver.py"}
 # What each part of app/ may import from app/ (a room is named by its package; `app` is the plumbing:
 # app/__init__.py and the modules at app/'s top). Anything else is a layering breach.
 ROOMS = {
@@ -129,12 +124,7 @@ def test_the_checker_sees_a_circle_and_the_package_layout():
 
 
 def test_no_import_circles():
-    graph = import_graph()
-    pending = list(zip(PENDING_CIRCLE, PENDING_CIRCLE[1:]))
-    assert all(b in graph[a] for a, b in pending), "the engine's circle is broken: empty PENDING_CIRCLE"
-    for a, b in pending:
-        del graph[a][b]
-    cycle = find_cycle(graph)
+    cycle = find_cycle(import_graph())
     assert cycle is None, "import circle: " + " -> ".join(cycle)
 
 
@@ -173,5 +163,4 @@ def test_the_apps_rooms_import_only_downwards():
 def test_every_module_of_the_product_is_short_enough_to_read():
     long = {str(path.relative_to(ROOT)): n for path in product_files()
             if (n := len(path.read_text().splitlines())) > MAX_LINES}
-    assert PENDING_LONG <= set(long), f"{PENDING_LONG - set(long)} is short now: take it out of PENDING_LONG"
-    assert set(long) <= PENDING_LONG, f"over {MAX_LINES} lines: {long}"
+    assert not long, f"over {MAX_LINES} lines: {long}"

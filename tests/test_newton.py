@@ -1,11 +1,14 @@
-"""The implicit step as a minimisation: exact on linear bodies, a line search that only
-goes down, per-body stopping, and no work for a body at rest."""
+"""Newton's iteration: exact on linear bodies, a line search that only goes down, per-body
+stopping, no work for a body at rest, and a first guess extrapolated from the last step."""
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 from conftest import box_mesh, make_scene
 from test_elastic import assembled_matrix
+from test_solver import spinning
 
 import fem
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
@@ -48,13 +51,13 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
     """E is evaluated at the start iterate and at every trial; each accepted iterate's E is at
     most the one before it (Armijo), on a case that needs halvings."""
     sim = fem.Simulation(spinning_incompressible())
-    solver = sim.solver
-    energy, accept, step = solver.energy, solver.accept, solver.step
+    solver, potential, newton = sim.solver, sim.solver.potential, sim.solver.newton
+    energy, accept, step = potential.energy, newton.accept, solver.step
     paths, last = [], []        # per step: E of the start iterate, then of each accepted iterate
 
     def logged_energy(*args, **kwargs):
         energy(*args, **kwargs)
-        value = solver.body_E.to_numpy()[:1]              # E_b of the scene's one body
+        value = potential.body_E.to_numpy()[:1]           # E_b of the scene's one body
         if not paths[-1]:
             paths[-1].append(value)
         last[:] = [value]
@@ -68,30 +71,12 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
         paths.append([])
         return step(*args)
 
-    solver.energy, solver.accept, solver.step = logged_energy, logged_accept, logged_step
+    potential.energy, newton.accept, solver.step = logged_energy, logged_accept, logged_step
     halvings = sum(sim.step()["line_search_steps"] for _ in range(12))
     assert halvings > 0, "the case must exercise the line search"
     assert sum(len(path) - 1 for path in paths) >= len(paths)   # Newton iterations were accepted
     for path in paths:
         assert all(b <= a for a, b in zip(path, path[1:])), path   # noqa: (1,) arrays
-
-
-def test_the_energy_pass_leaves_the_gradient_of_its_iterate(f64):
-    """The line search's energy pass also stores the tet terms of grad E (a trial it accepts
-    needs them next): the same numbers as the gradient's own pass, stiffness damping included."""
-    sim = fem.Simulation(spinning_incompressible())
-    for _ in range(2):
-        sim.step()
-    solver, dt = sim.solver, sim.settings.dt
-    solver.energy(solver.v0, solver.x, solver.v, dt)
-    fused = solver.corner.to_numpy()
-    solver.gradient_corners(solver.x, solver.v, dt, 1)
-    alone = solver.corner.to_numpy()
-    solver.gradient_corners(solver.x, solver.v, dt, 0)
-    undamped = solver.corner.to_numpy()
-    assert np.abs(alone - undamped).max() > 1e-3 * np.abs(alone).max()     # the damping term counts
-    # two kernels, compiled apart: their rounding differs (near-incompressible: lambda = 5000 mu)
-    np.testing.assert_allclose(fused, alone, rtol=0, atol=1e-9 * np.abs(alone).max())
 
 
 def two_bodies(quiet_only=False, tolerance=1e-4, newton_tolerance=1e-3):
@@ -153,3 +138,35 @@ def test_the_coursework_cylinder_at_rest_costs_no_solver_iterations(cggs):
     infos = [sim.step() for _ in range(5)]
     fem.init("cpu", "f64")
     assert [i["solver_iters"] for i in infos] == [0] * 5
+
+
+def test_the_first_guess_extrapolates_the_last_steps_change(f64):
+    """Each solve starts from v_n + (dt / dt_prev)(v_n - v_(n-1)). Falling freely, a body's velocity changes by
+    g dt every step: from the second step on that guess is the answer and PCG has nothing left
+    to do, where a start from v_n needs iterations. A new state (set_state) starts from v_n
+    alone; a rejected step leaves no NaN in the guess."""
+    g, dt = np.array([0.0, -9.81, 0.0]), 0.02
+    runs = {}
+    for forget in (False, True):
+        scene = spinning("corotational", omega=0.0, effects=Effects(gravity=tuple(g)),
+                         solver=SolverSettings(dt=dt, tolerance=1e-6, step="single"))
+        sim = fem.Simulation(scene)
+        x0, iterations = sim.positions(), []
+        for _ in range(10):
+            if forget:
+                sim.set_state(sim.positions(), sim.velocities())   # the same state, no memory
+            iterations.append(sim.step()["solver_iters"])
+        runs[forget] = sim, iterations
+    (sim, extrapolated), (_, from_vn) = runs[False], runs[True]
+    assert extrapolated[0] == from_vn[0] > 0             # the first step has no last step
+    # at most one iteration: the guess carries the last solve's own error (the tolerance)
+    assert max(extrapolated[1:]) <= 1 and min(from_vn[1:]) >= 10
+    fallen = dt * dt * g * 10 * 11 / 2                    # backward Euler: v_k = k dt g, x_n = x_0 + dt sum v_k
+    np.testing.assert_allclose(sim.positions(), x0 + fallen, atol=1e-6)       # 22 mm fallen
+
+    sim.settings = replace(sim.settings, dt=dt / 2)      # the change scales with dt: g dt / 2 now
+    assert sim.step()["solver_iters"] <= 1
+
+    sim.apply_impulse([3], (np.nan, 0.0, 0.0))           # an impulse that breaks the step
+    assert not sim.step()["finite"]
+    assert np.isfinite(sim.solver.newton.change.to_numpy()).all()

@@ -20,9 +20,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_pyproject_names_the_packages_the_command_and_the_requirements():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert project["project"]["scripts"] == {"softfem": "app.cli:main"}
-    # every folder of the product that is a package, sub-packages included (app.commands, ...)
+    # every folder of the product that is a package, sub-packages included (fem.implicit, app.commands, ...):
+    # setuptools installs only those named
     packages = {str(init.parent.relative_to(ROOT)).replace("/", ".")
                 for top in ("fem", "app", "assets", "scenes") for init in (ROOT / top).rglob("__init__.py")}
+    assert {"fem", "fem.implicit", "app", "app.commands", "assets", "scenes"} <= packages
     assert set(project["tool"]["setuptools"]["packages"]) == packages
     # The same dependencies as requirements.txt, which also has the test tools.
     required = {line.split(">")[0].split("=")[0].strip().lower()

@@ -282,7 +282,7 @@ def test_the_solver_starts_its_rotations_from_the_last_steps_turn(precision):
     # the 6th step extracted R at states[5]: its turn is from states[4] to states[5]
     axis_angle = Rotation.from_matrix(body_turn(states[4], states[5])).as_rotvec()
     expected = np.sin(np.linalg.norm(axis_angle) / 2) * axis_angle / np.linalg.norm(axis_angle)
-    turn = sim.solver.turn.to_numpy()[:sim.model.n_tets]
+    turn = sim.solver.rotations.turn.to_numpy()[:sim.model.n_tets]
     assert np.linalg.norm(axis_angle) > 0.05               # about 4 rad/s x 0.02 s
     np.testing.assert_allclose(turn, np.tile(expected, (len(turn), 1)), atol=1e-3 * np.linalg.norm(expected))
 
@@ -290,10 +290,10 @@ def test_the_solver_starts_its_rotations_from_the_last_steps_turn(precision):
 
     @ti.kernel
     def one_step_certifies(x: ti.template()):
-        solver, model = sim.solver, sim.model
+        rotations, model = sim.solver.rotations, sim.model
         for e in range(model.tet_count[None]):
-            F = solver.edges(x, e) @ model.Bm[e]
-            start = quaternion_product(solver.turn_quaternion(e, 1.0), solver.quaternions[e])
+            F = model.edges(x, e) @ model.Bm[e]
+            start = quaternion_product(rotations.turn_quaternion(e, 1.0), rotations.quaternions[e])
             _, converged = newton_rotation(F, start.normalized(), 1)
             certified[None] += converged
 
@@ -301,7 +301,7 @@ def test_the_solver_starts_its_rotations_from_the_last_steps_turn(precision):
         one_step_certifies(sim.state.x)
         assert certified[None] == sim.model.n_tets
         certified[None] = 0
-        sim.solver.turn.fill(0.0)                          # the last R alone
+        sim.solver.rotations.turn.fill(0.0)                          # the last R alone
         one_step_certifies(sim.state.x)
         assert certified[None] == 0
 
@@ -311,12 +311,12 @@ def test_the_solver_starts_its_rotations_from_the_last_steps_turn(precision):
     np.testing.assert_allclose(sim.rotations(), U @ Vt, atol=TOLERANCE[precision])
 
     sim.step()                       # sim.rotations() overwrote the rotations: no turn is known
-    assert not sim.solver.turn.to_numpy().any()
+    assert not sim.solver.rotations.turn.to_numpy().any()
     sim.step()
-    assert sim.solver.turn.to_numpy().any()
+    assert sim.solver.rotations.turn.to_numpy().any()
     sim.set_state(sim.positions(), sim.velocities())
     sim.step()
-    assert not sim.solver.turn.to_numpy().any()
+    assert not sim.solver.rotations.turn.to_numpy().any()
 
 
 def deformation_gradients(sim, x):

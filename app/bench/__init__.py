@@ -10,7 +10,7 @@ the same start for the same simulated time:
         PCG 1e-2, 1e-3, 1e-6 at the scene's dt               (the tolerance axis)
     linear: the same, once (one Newton iteration solves a linear body exactly)
     both methods, one-solve step at the scene's dt:
-        Jacobi iteration at 10, 30, 100 iterations           (matrix-free, fem.solver)
+        Jacobi iteration at 10, 30, 100 iterations           (matrix-free, fem.implicit)
         direct sparse solvers                                (assembled and factorised, app.bench.direct):
             the fastest installed (MKL PARDISO with the fast-direct extra), its analysis of the
             pattern made once and the matrix refactorised every step, and SuperLU, from

@@ -1,6 +1,6 @@
 """The coursework's way, as a baseline: assemble K, factorise A, solve (numpy/scipy, float64).
 
-The same backward Euler step as `fem.solver` (method.md), with the same scene
+The same backward Euler step as `fem.implicit` (method.md), with the same scene
 (masses, materials, Rayleigh damping, gravity, pins, ground, impulses):
 
     A v_new = M v + dt (f_elastic(x) + M g),   A = cM M + cK K(R),   x_new = x + dt v_new

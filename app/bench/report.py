@@ -10,7 +10,7 @@ from app.bench.measure import PRECONDITIONER_TOLERANCE
 from app.bench.plan import BASELINE_TOLERANCE, ERROR_GOAL, REFERENCE_REFINEMENT, REFERENCE_SETTINGS, sci, step_name
 from app.bench.plot import plot
 from app.files import atomic_open
-from fem.solver import TWO_LEVEL_VERTICES
+from fem.implicit.preconditioner import TWO_LEVEL_VERTICES
 
 # What `write` names its files: in --out, and as the committed pages in docs/ (`bench --docs`).
 RESULT_FILES = {"json": "results.json", "md": "results.md", "plot": "accuracy_vs_time.png"}

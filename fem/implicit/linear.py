@@ -1,0 +1,214 @@
+"""The linear solve of a Newton iteration, H d = -grad E, matrix-free (method.md, section 7).
+
+H = cM M + cK K(R) is never assembled: the stiffness product runs tet by tet into corner
+values (fem/implicit/elasticity.py) and each vertex gathers its own, filtered by the
+constraints. Two solvers:
+
+- PCG, preconditioned by fem/implicit/preconditioner.py. CG_UNROLL iterations run in one
+  kernel launch, with the scalar steps on the device and the direction update fused into
+  the stiffness pass; the iterates are those of textbook PCG.
+- Weighted block-Jacobi iteration, d += omega D^-1 (rhs - H d), omega from H's spectrum.
+
+Both stop once the weighted residual sum_b w_b |r_b|^2 (w_b: IncrementalPotential.body_weight)
+reaches the target, or at the iteration cap.
+
+Fields (n vertices of the capacity):
+    solution (n, 3)      d, m/s: the first guess in, the direction out
+    r, z, p, Ap (n, 3)   PCG's residual, preconditioned residual, direction and H p
+    rz, rr, cg_beta ()   PCG's scalars r.z, weighted r.r and beta, kept on the device
+    iterations ()        PCG iterations of this solve
+    active ()            1 while PCG iterates
+"""
+
+import numpy as np
+import taichi as ti
+
+CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
+
+
+@ti.data_oriented
+class LinearSolver:
+    """PCG and Jacobi iteration on H for one model: H u from `potential` (apply_H) and
+    `elasticity` (the stiffness product), right-hand side `potential.rhs`, preconditioner
+    `preconditioning`, constraints from `effects`, sleeping bodies' tets skipped (`sleep`)."""
+
+    def __init__(self, model, potential, elasticity, preconditioning, effects, sleep, switches):
+        n = model.capacity.vertices
+        self.model, self.potential, self.elasticity = model, potential, elasticity
+        self.preconditioning, self.effects, self.sleep = preconditioning, effects, sleep
+        self.serial_tets, self.serial_vertices = switches.serial_tets, switches.serial_vertices
+        vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
+        self.solution = vec(n)
+        self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n)
+        self.rz = ti.field(float, ())
+        self.rr = ti.field(float, ())
+        self.cg_beta = ti.field(float, ())
+        self.iterations = ti.field(ti.i32, ())
+        self.active = ti.field(ti.i32, ())
+
+    def load(self):
+        self.omega_key, self.omega = None, None               # Jacobi iteration's weight, and its (cM, cK)
+
+    def forget_weight(self):
+        """The materials or dt changed: the next Jacobi iteration finds its weight again."""
+        self.omega_key = None
+
+    def solve(self, cM, cK, target, max_iterations, preconditioner):
+        """H d = rhs from the first guess in `solution`, until the weighted residual
+        sum_b |r_b|^2 w_b <= target; returns the iterations. preconditioner: "jacobi" or
+        "two-level" (PCG), None (Jacobi iteration)."""
+        if preconditioner is not None:
+            two_level = preconditioner == "two-level"
+            self.elasticity.stiffness_product(self.solution)
+            if self.start_residual(cM, cK, two_level) > target:
+                while self.cg_iterations(cM, cK, target, max_iterations, CG_UNROLL, two_level):
+                    pass
+            return int(self.iterations[None])
+        iterations = 0
+        while iterations < max_iterations:
+            self.elasticity.stiffness_product(self.solution)
+            self.rr[None] = self.jacobi_update(cM, cK, self.omega)
+            iterations += 1
+            if self.rr[None] <= target:
+                break
+        return iterations
+
+    @ti.kernel
+    def start_residual(self, cM: float, cK: float, two_level: ti.template()) -> float:
+        """r <- filtered(rhs) - H d, z <- P r, rz <- r.z (after stiffness_product(d)).
+        Returns the weighted residual sum_i w_b(i) |r_i|^2."""
+        rz, rr = 0.0, 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            r = self.effects.filtered(i, self.potential.rhs[i]) - self.potential.apply_H(i, self.solution, cM, cK)
+            self.r[i] = r
+            self.p[i] = ti.Vector.zero(float, 3)
+            if ti.static(not two_level):
+                z = self.effects.filtered(i, self.preconditioning.jacobi(i, r))
+                self.z[i] = z
+                rz += r.dot(z)
+            rr += self.potential.body_weight[self.model.vertex_body[i]] * r.dot(r)
+        if ti.static(two_level):
+            rz = self.preconditioning.two_level_precondition(self.r, self.z, 1)
+        self.rz[None] = rz
+        self.rr[None] = rr
+        self.cg_beta[None] = 0.0
+        self.iterations[None] = 0
+        self.active[None] = 1
+        return rr
+
+    @ti.kernel
+    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template(),
+                      two_level: ti.template()) -> ti.i32:
+        """Up to `unroll` PCG iterations in one launch.
+
+        Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
+        vertices: d, r, z and r.z, weighted r.r; two-level: z and r.z in three more,
+        `Preconditioner.two_level_precondition`) with the scalar steps between them run
+        serially on the device. Once the weighted |r|^2 <= target or `cap` iterations are
+        done, `active` drops to 0 and the remaining passes loop over nothing, so the
+        iteration count is exact while Python launches one kernel per `unroll`. Returns `active`.
+        """
+        n_tets, n = self.model.tet_count[None], self.model.vertex_count[None]
+        for _ in ti.static(range(unroll)):
+            on = self.active[None]
+            beta = self.cg_beta[None]
+            ti.loop_config(serialize=self.serial_tets)
+            for e in range(n_tets * on):
+                if self.sleep.tet_awake(e):
+                    self.elasticity.tet_stiffness(e, self.z, self.p, beta)
+            pAp = 0.0
+            ti.loop_config(serialize=self.serial_vertices)
+            for i in range(n * on):
+                p = self.z[i] + beta * self.p[i]
+                self.p[i] = p
+                Ap = self.potential.apply_H(i, self.p, cM, cK)
+                self.Ap[i] = Ap
+                pAp += p.dot(Ap)
+            step = 0.0
+            if pAp > 0:
+                step = self.rz[None] / pAp
+            rz, rr = 0.0, 0.0
+            ti.loop_config(serialize=self.serial_vertices)
+            for i in range(n * on):
+                self.solution[i] += step * self.p[i]
+                r = self.r[i] - step * self.Ap[i]
+                self.r[i] = r
+                if ti.static(not two_level):              # block Jacobi: z in the same pass
+                    z = self.effects.filtered(i, self.preconditioning.jacobi(i, r))
+                    self.z[i] = z
+                    rz += r.dot(z)
+                rr += self.potential.body_weight[self.model.vertex_body[i]] * r.dot(r)
+            if ti.static(two_level):
+                rz = self.preconditioning.two_level_precondition(self.r, self.z, on)
+            if on:
+                self.cg_beta[None] = 0.0
+                if self.rz[None] > 0:
+                    self.cg_beta[None] = rz / self.rz[None]
+                self.rz[None] = rz
+                self.rr[None] = rr
+                self.iterations[None] += 1
+                if not (rr > target and self.iterations[None] < cap):
+                    self.active[None] = 0
+        return self.active[None]
+
+    @ti.kernel
+    def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
+        """d += omega P (rhs - H d) (after stiffness_product(d)). Returns the weighted
+        |rhs - H d|^2 before the update."""
+        rr = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            r = self.effects.filtered(i, self.potential.rhs[i]) - self.potential.apply_H(i, self.solution, cM, cK)
+            self.solution[i] += omega * self.effects.filtered(i, self.preconditioning.jacobi(i, r))
+            rr += self.potential.body_weight[self.model.vertex_body[i]] * r.dot(r)
+        return rr
+
+    def jacobi_weight(self, cM, cK, omega=None):
+        """omega = 1.5 / lambda_max(P H), lambda_max from 30 power iterations (rotations ignored:
+        they barely move the spectrum), so the iteration cannot diverge (needs omega < 2 / lambda_max).
+        omega: a weight the settings fix instead."""
+        if omega:
+            self.omega = omega
+            return
+        key = (cM, cK)
+        if key != self.omega_key:
+            P = self.preconditioning.exact_blocks(cM, cK)
+            u = np.random.default_rng(0).standard_normal((self.model.n_vertices, 3))
+            lam = 1.0
+            for _ in range(30):
+                u /= np.linalg.norm(u)
+                w = np.einsum("nij,nj->ni", P, self.apply_matrix(u, cM, cK))
+                lam = float(np.vdot(u, w)) if np.vdot(u, u) > 0 else 1.0
+                u = w
+            self.omega, self.omega_key = 1.5 / max(lam, 1e-12), key
+
+    # ------------------------------------------------------------ for checks and tests
+
+    def apply_matrix(self, u, cM, cK):
+        """H u for a (n, 3) numpy array u with the current rotations."""
+        self.model.write(self.p, u)
+        self.elasticity.stiffness_product(self.p)
+        self.matrix_product(self.p, self.Ap, cM, cK)
+        return self.Ap.to_numpy()[:self.model.n_vertices].astype(np.float64)
+
+    @ti.kernel
+    def matrix_product(self, u: ti.template(), out: ti.template(), cM: float, cK: float):
+        """out <- H u, gathered from the corners after stiffness_product(u)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            out[i] = self.potential.apply_H(i, u, cM, cK)
+
+    def apply_preconditioner(self, r, preconditioner):
+        """P r for a (n, 3) numpy array r, with the preconditioner ("jacobi" or "two-level") of the last step."""
+        self.model.write(self.r, r)
+        self.preconditioner_product(preconditioner == "two-level")
+        return self.z.to_numpy()[:self.model.n_vertices].astype(np.float64)
+
+    @ti.kernel
+    def preconditioner_product(self, two_level: ti.template()):
+        if ti.static(two_level):
+            self.preconditioning.two_level_precondition(self.r, self.z, 1)
+        else:
+            for i in range(self.model.vertex_count[None]):
+                self.z[i] = self.effects.filtered(i, self.preconditioning.jacobi(i, self.r[i]))

@@ -1,0 +1,262 @@
+"""The nonlinear solve: Newton iterations on E(v) with a line search per body, or one solve.
+
+Each Newton iteration solves H d = -grad E (fem/implicit/linear.py) to a relative accuracy
+FORCING (inexact Newton), then every body backtracks along its own part of d until its own
+E_b falls enough (Armijo): bodies never interact, so E is a sum of their E_b, and a body hit
+by a violent impulse never sets the step for a quiet one. E_b is summed in float64; a body
+whose decrease is below the round-off of its E_b has nothing left to gain and stops.
+
+Convergence is tested per body: the gradient relative to the size of the step's own terms
+(IncrementalPotential.gradient_norm), or the velocity change of the last iteration relative
+to the body's momentum (`velocity_change`), each with a round-off floor.
+
+The first Newton iteration from v = 0 is the classical one-solve (stiffness-warping) step:
+`one_solve` stops there, without line search. Either starts its first solve from the last
+step's velocity change, extrapolated (`start_direction`).
+
+Fields (n vertices, bodies of the capacity):
+    velocity (n, 3)             v of the accepted iterate, m/s
+    change (n, 3)               v_n - v_(n-1), the last step's change, m/s
+    body_E_accepted (bodies,)   E_b at the accepted iterate, J
+    body_resolution (bodies,)   J: changes of E_b below this are round-off
+    body_slope (bodies,)        grad_b E . d_b, J (< 0: d descends for body b)
+    body_step (bodies,)         a_b: body b's step along d in the line search
+    searching (bodies,)         1: body b has not found its decrease yet
+    body_change (bodies,)       |a d_b|_M^2 of the last Newton iteration, J
+    body_momentum (bodies,)     |v_b|_M^2, J
+    body_speed_floor (bodies,)  round-off floor of |v_b|_M^2, J
+"""
+
+from dataclasses import dataclass
+
+import taichi as ti
+
+from fem.implicit.potential import ROUNDOFF
+from fem.runtime import epsilon
+
+ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
+MAX_HALVINGS = 12        # line search: a >= 2^-12
+FORCING = 0.1            # inexact Newton: CG reduces the gradient by this factor (at least)
+
+
+@dataclass
+class Solved:
+    """What the nonlinear solve did: rho, the weighted gradient norm at its end (<= 1: every
+    body converged); settled: every body's velocity stopped changing, or none could descend;
+    iterations and halvings summed; rotation_ms: time in its rotation extractions."""
+
+    rho: float
+    settled: bool = False
+    newton_iters: int = 0
+    solver_iters: int = 0
+    halvings: int = 0
+    rotation_ms: float = 0.0
+
+
+@ti.data_oriented
+class Newton:
+    """Newton's iteration for one model over the parts it drives: `potential` (E, grad E),
+    `linear` (the direction), `rotations` (R at each trial), `effects` (constraints, the
+    ground's first iterate) and `sleep`."""
+
+    def __init__(self, model, potential, linear, rotations, effects, sleep, switches):
+        n, nb = model.capacity.vertices, model.capacity.bodies
+        self.model, self.potential, self.linear, self.rotations = model, potential, linear, rotations
+        self.effects, self.sleep = effects, sleep
+        self.has_ground = switches.ground
+        self.serial_vertices = switches.serial_vertices
+        self.velocity = ti.Vector.field(3, float, n)
+        self.change = ti.Vector.field(3, float, n)
+        self.body_E_accepted = ti.field(ti.f64, nb)
+        self.body_resolution = ti.field(ti.f64, nb)
+        self.body_slope = ti.field(ti.f64, nb)
+        self.body_step = ti.field(float, nb)
+        self.searching = ti.field(ti.i32, nb)
+        self.body_change = ti.field(ti.f64, nb)
+        self.body_momentum = ti.field(ti.f64, nb)
+        self.body_speed_floor = ti.field(ti.f64, nb)
+
+    def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner):
+        """Newton iterations from the first iterate until every body has converged; returns Solved.
+        scale: how far the first solve extrapolates the last step's change (dt / dt_prev)."""
+        p = self.potential
+        p.energy(p.v0, p.x, p.v, h, first=True)              # E_b of every body at the first iterate
+        out = Solved(rho=p.gradient_vertices(p.v0, p.v, h, tolerance, 1))   # its tet terms came with E
+        self.accept(p.v, 1)
+        while out.rho > 1.0 and out.newton_iters < settings.max_newton:
+            target = max(1.0, FORCING ** 2 * out.rho)
+            out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
+                                               preconditioner)
+            out.newton_iters += 1
+            if self.start_search() == 0:                      # no body's decrement above round-off
+                out.settled = True
+                break
+            for _ in range(MAX_HALVINGS + 1):
+                out.rotation_ms += self.trial(h, settings)
+                p.energy(p.v0, p.x, p.v, h)
+                if self.armijo() == 0:
+                    break
+                out.halvings += 1
+            else:                                             # some found no decrease at this precision
+                moved = self.give_up()                        # they keep the last iterate
+                out.rotation_ms += self.trial(h, settings)
+                if moved == 0:
+                    break
+                p.energy(p.v0, p.x, p.v, h)
+            self.accept(p.v, 0)
+            change = self.velocity_change(settings.newton_tolerance)
+            out.rho = p.gradient_vertices(p.v0, p.v, h, tolerance, 0)   # tet terms: with the last E
+            if change <= 1.0:                                 # every body's velocity has settled
+                out.settled = True
+                break
+        return out
+
+    def one_solve(self, cM, cK, h, tolerance, scale, settings, preconditioner):
+        """The first Newton iteration alone, with the rotations of the first iterate and no
+        line search (the one-solve step); returns Solved, rho the linear solve's residual."""
+        p = self.potential
+        out = Solved(rho=p.gradient(p.v0, p.x, p.v, h, tolerance, True))
+        if out.rho > 1.0:
+            out.solver_iters = self.direction(cM, cK, 1.0, True, scale, settings, preconditioner)
+            out.newton_iters = 1
+            out.rho = float(self.linear.rr[None])
+            self.try_step(p.x0, p.x, p.v, h, 0)
+        return out
+
+    def direction(self, cM, cK, target, warm, scale, settings, preconditioner):
+        """d <- the solution of H d = -grad E to the weighted residual `target`, from the
+        extrapolated guess (warm) or 0; returns the linear solver's iterations."""
+        self.start_direction(self.potential.v0, int(warm), scale)
+        return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner)
+
+    def trial(self, h, settings):
+        """The iterate of each body's own step a_b along d, and its rotations; returns their ms."""
+        p = self.potential
+        self.try_step(p.x0, p.x, p.v, h, 1)
+        ms, _ = self.rotations.update(p.x, settings.rotations == "svd", twist=True)
+        return ms
+
+    @ti.kernel
+    def start_iterate(self, x0: ti.template(), v0: ti.template(), x: ti.template(), v: ti.template(),
+                      dt: float):
+        """The first Newton iterate: v = 0, except the normal velocity of vertices on the ground,
+        prescribed so that they land on the plane (the ground's active set is chosen here)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            u = ti.Vector.zero(float, 3)
+            if ti.static(self.has_ground):
+                self.effects.contact[i] = 0
+                awake = self.sleep.awake[self.model.vertex_body[i]]
+                if awake and self.model.free[i] > 0 and (x0[i][1] + dt * v0[i][1] < self.effects.ground[None]
+                                                         or self.effects.pressed[i]):
+                    self.effects.contact[i] = 1
+                    u[1] = (self.effects.ground[None] - x0[i][1]) / dt
+            self.velocity[i] = u
+            v[i] = u
+            x[i] = x0[i] + dt * u
+
+    @ti.kernel
+    def start_direction(self, v0: ti.template(), warm: ti.i32, scale: float):
+        """d <- filtered v_n + scale (v_n - v_(n-1)) - v, or 0. On the first Newton iteration
+        the velocity extrapolated with the last step's change (scaled by the ratio of the dts)
+        is a good guess: on a turning body it takes a quarter to a third of PCG's iterations
+        off (docs/method.md, section 7)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            d = ti.Vector.zero(float, 3)
+            if warm:
+                d = self.effects.filtered(i, v0[i] + scale * self.change[i] - self.velocity[i])
+            self.linear.solution[i] = d
+
+    @ti.kernel
+    def start_search(self) -> ti.i32:
+        """body_slope[b] <- grad_b E . d_b (J, < 0 where d descends). A body whose decrease
+        -slope_b is above the round-off of its E_b searches, from a_b = 1; the others have
+        nothing left to gain (a_b = 0). Returns how many bodies search."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_slope[b] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            slope = -self.effects.filtered(i, self.potential.rhs[i]).dot(self.linear.solution[i])
+            self.body_slope[self.model.vertex_body[i]] += ti.cast(slope, ti.f64)
+        count = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.searching[b] = int(-self.body_slope[b] > self.body_resolution[b])
+            self.body_step[b] = self.searching[b]
+            count += self.searching[b]
+        return count
+
+    @ti.kernel
+    def armijo(self) -> ti.i32:
+        """A searching body whose E_b fell by at least ARMIJO a_b |slope_b| is done; the others
+        halve a_b. Returns how many still search."""
+        left = 0
+        E = ti.static(self.potential.body_E)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if self.searching[b]:
+                if E[b] <= self.body_E_accepted[b] + ARMIJO * self.body_step[b] * self.body_slope[b]:
+                    self.searching[b] = 0
+                else:
+                    self.body_step[b] *= 0.5
+                    left += 1
+        return left
+
+    @ti.kernel
+    def give_up(self) -> ti.i32:
+        """Bodies that found no decrease (at this precision) stay where they are: a_b = 0.
+        Returns how many bodies still move."""
+        moving = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if self.searching[b]:
+                self.body_step[b] = 0.0
+            moving += int(self.body_step[b] > 0)
+        return moving
+
+    @ti.kernel
+    def try_step(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt: float, each: ti.i32):
+        """v <- velocity + a d, x <- x^ + dt v: a point on the Newton direction, a = 1 for
+        every body, or (each = 1) each body's own step a_b."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            a = 1.0
+            if each:
+                a = self.body_step[self.model.vertex_body[i]]
+            u = self.velocity[i] + a * self.linear.solution[i]
+            v[i] = u
+            x[i] = x0[i] + dt * u
+
+    @ti.kernel
+    def accept(self, v: ti.template(), first: ti.i32):
+        """The iterate v (and its energies E_b) becomes the accepted one; on the step's first
+        iterate E_b also sets its resolution, the round-off of a float64 sum of that size."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_E_accepted[b] = self.potential.body_E[b]
+            if first:
+                self.body_resolution[b] = ti.static(ROUNDOFF * epsilon()) * ti.abs(self.potential.body_E[b])
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.velocity[i] = v[i]
+
+    @ti.kernel
+    def velocity_change(self, tolerance: ti.f64) -> ti.f64:
+        """sum_b |a_b d_b|_M^2 / (tol^2 |v_b|_M^2 + floor_b): <= 1 exactly when no body's velocity
+        moved by more than tol of its size (or by round-off) in the last Newton iteration."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_change[b], self.body_momentum[b] = 0.0, 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            m = ti.cast(self.model.mass[i], ti.f64)
+            b = self.model.vertex_body[i]
+            self.body_change[b] += m * ti.cast(self.body_step[b] * self.linear.solution[i], ti.f64).norm_sqr()
+            self.body_momentum[b] += m * ti.cast(self.velocity[i], ti.f64).norm_sqr()
+        change = ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            change += self.body_change[b] / (tolerance * tolerance * self.body_momentum[b] + self.body_speed_floor[b])
+        return change

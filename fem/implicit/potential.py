@@ -1,0 +1,215 @@
+"""The incremental potential E(v) that one implicit step minimises (method.md, section 6).
+
+With the iterate x = x^ + h v, one step finds the velocity v that minimises
+
+    E(v) = 1/2 |v - v^|_M^2 + h/2 v^T D v - h v^T M g + Psi(x^ + h v)        (J)
+
+D = alpha M + beta K_n: Rayleigh damping with the stiffness frozen in the step's starting
+frame (fem/implicit/rotations.py, `damping_frame`); Psi: the elastic energy (corotated linear
+or linear per body, fem/implicit/elasticity.py). Its stationarity condition
+M (v - v^) + h D v - h M g - h f(x) = 0 is the integrator's update, and E's Hessian is
+
+    H = cM M + cK K(R),    cM = 1 + h alpha,  cK = h beta + h^2      (`coefficients`).
+
+What an integrator defines is its inertia target (x^, v^) and its effective step h. Backward
+Euler, the only one so far: x^ = x_n, v^ = v_n, h = dt (`begin`). A second integrator (BDF2:
+x^ = (4 x_n - x_(n-1)) / 3, v^ likewise, h = 2 dt / 3) writes another target into x0, v0 and
+passes its h: every pass here takes them as inputs.
+
+Energies are summed per body in float64 whatever the fields' precision: bodies never
+interact, so E = sum_b E_b, and each body has its own line search and stopping test.
+
+Fields (n vertices, bodies of the capacity):
+    x0, v0 (n, 3)         the inertia target x^ (m) and v^ (m/s): for backward Euler the step's start
+    x, v (n, 3)           the iterate x = x^ + h v (m) and v (m/s)
+    rhs (n, 3)            -grad E at the accepted iterate (unfiltered), N s
+    body_E (bodies,)      E_b at the last iterate evaluated, J
+    body_gradient (bodies,)   |grad_b E|^2, (N s)^2
+    body_scale (bodies,)  s_b^2 of this step: the size of its terms, (N s)^2
+    body_momentum (bodies,)   |M v^|_b^2, (N s)^2
+    body_floor (bodies,)  round-off floor of |grad_b|^2, (N s)^2
+    body_weight (bodies,) 1 / (tol^2 s_b^2 + floor_b): weights of the residuals' norm
+"""
+
+import taichi as ti
+
+from fem.elastic import corner_forces, energy_density, linear_stress
+from fem.implicit.elasticity import TET_CHUNK
+
+ROUNDOFF = 30.0          # per-body floors of the stopping tests, in units of the precision's epsilon
+
+
+@ti.data_oriented
+class IncrementalPotential:
+    """E(v), grad E(v) and H u for one model, over the parts that define them: `elasticity`
+    (Psi's tet terms), `rotations` (the damping frame), `effects` (gravity, damping,
+    constraints) and `sleep` (a sleeping body's terms are 0)."""
+
+    def __init__(self, model, elasticity, rotations, effects, sleep, switches):
+        n, nb = model.capacity.vertices, model.capacity.bodies
+        self.model, self.elasticity, self.rotations = model, elasticity, rotations
+        self.effects, self.sleep = effects, sleep
+        self.has_gravity = switches.gravity
+        self.has_stiffness_damping = switches.stiffness_damping
+        self.serial_tets, self.serial_vertices = switches.serial_tets, switches.serial_vertices
+        vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
+        self.x0, self.v0 = vec(n), vec(n)
+        self.x, self.v = vec(n), vec(n)
+        self.rhs = vec(n)
+        self.body_E = ti.field(ti.f64, nb)
+        self.body_gradient = ti.field(ti.f64, nb)
+        self.body_scale = ti.field(ti.f64, nb)
+        self.body_momentum = ti.field(ti.f64, nb)
+        self.body_floor = ti.field(ti.f64, nb)
+        self.body_weight = ti.field(float, nb)
+
+    def coefficients(self, h):
+        """(cM, cK) of H = cM M + cK K for the effective step h (s)."""
+        return 1 + h * self.effects.alpha, h * self.effects.beta + h * h
+
+    @ti.kernel
+    def begin(self, x: ti.template(), v: ti.template()):
+        """Backward Euler's inertia target: x0, v0 <- the step's start x_n, v_n; the iterate x, v
+        too (also how checks copy a state in)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.x0[i], self.v0[i] = x[i], v[i]
+            self.x[i], self.v[i] = x[i], v[i]
+
+    # ------------------------------------------------------------ E
+
+    def energy(self, v0, x, v, h, first=False):
+        """E_b(v) of every body at x = x^ + h v into body_E (J, float64), with the rotations at
+        x already extracted, and the tet terms of grad E there (gradient_vertices finishes it).
+        first: the step's first iterate, v = 0 off the ground."""
+        self.energy_vertices(v0, v, h)
+        self.energy_tets(x, v, h, int(not first or self.effects.has_ground))
+
+    @ti.kernel
+    def energy_vertices(self, v0: ti.template(), v: ti.template(), dt: float):
+        """body_E[b] <- 1/2 |v_b - v^|_M^2 + dt alpha/2 |v_b|_M^2 - dt v_b^T M g, in float64 (J)."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_E[b] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            m = ti.cast(self.model.mass[i], ti.f64)
+            u, u0 = ti.cast(v[i], ti.f64), ti.cast(v0[i], ti.f64)
+            e = 0.5 * m * ((u - u0).norm_sqr() + dt * self.effects.mass_damping[None] * u.norm_sqr())
+            if ti.static(self.has_gravity):
+                e -= dt * m * u.dot(ti.cast(self.effects.gravity_vector(), ti.f64))
+            self.body_E[self.model.vertex_body[i]] += e
+
+    @ti.kernel
+    def energy_tets(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
+        """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K_n v_b, summed in float64 (J), a chunk of
+        tets at a time (as in Safeguards.body_energy); corner <- the tet terms of grad E at
+        (x, v), in the same pass: a trial iterate the line search accepts needs its gradient
+        next. moving=0: v is 0 (as in gradient_corners), so the damping terms are too."""
+        n = self.model.tet_count[None]
+        ti.loop_config(serialize=self.serial_tets)
+        for c in range((n + TET_CHUNK - 1) // TET_CHUNK):
+            body, total = -1, ti.cast(0.0, ti.f64)
+            for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
+                if self.model.tet_body[e] != body:
+                    if body >= 0:
+                        self.body_E[body] += total
+                    body, total = self.model.tet_body[e], 0.0
+                B = self.gradient_tet(x, v, dt, moving, e)
+                awake = ti.cast(self.sleep.tet_awake(e), ti.f64)
+                total += awake * self.elasticity.elastic_energy(x, e)
+                if ti.static(self.has_stiffness_damping) and moving:
+                    W = ti.cast(self.model.rest_volume[e], ti.f64)
+                    mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
+                    dF = ti.cast(self.model.edges(v, e), ti.f64) @ ti.cast(B, ti.f64)
+                    beta = ti.cast(dt * self.effects.stiffness_damping[None], ti.f64)
+                    total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
+            if body >= 0:
+                self.body_E[body] += total
+
+    # ------------------------------------------------------------ grad E
+
+    def gradient(self, v0, x, v, h, tolerance, first):
+        """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1)."""
+        self.gradient_corners(x, v, h, int(not first or self.effects.has_ground))   # first: v = 0 off the ground
+        return self.gradient_vertices(v0, v, h, tolerance, int(first))
+
+    @ti.kernel
+    def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
+        """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e.
+        moving=0: v is 0 (the step's first iterate, no ground), so the damping term is too."""
+        ti.loop_config(serialize=self.serial_tets)
+        for e in range(self.model.tet_count[None]):
+            self.gradient_tet(x, v, dt, moving, e)
+
+    @ti.func
+    def gradient_tet(self, x: ti.template(), v: ti.template(), dt, moving, e):
+        """corner <- tet e's terms of grad E (gradient_corners). Returns the Bm R_n^T its damping
+        term used (0 without one), for energy_tets to reuse."""
+        W = self.model.rest_volume[e] * self.sleep.tet_awake(e)     # a sleeping body's tets add nothing
+        self.elasticity.store_corners(e, corner_forces(-dt * self.elasticity.elastic_stress(x, e),
+                                                       self.rotations.rotated_Bm[e], W))
+        B = ti.Matrix.zero(float, 3, 3)
+        if ti.static(self.has_stiffness_damping) and moving:
+            B = self.rotations.damping_Bm(e)
+            dF = self.model.edges(v, e) @ B
+            eps = 0.5 * (dF + dF.transpose())
+            P = linear_stress(eps, self.model.mu(e), self.model.lam(e))
+            f = corner_forces(-dt * self.effects.stiffness_damping[None] * P, B, W)
+            for k in ti.static(range(4)):
+                self.elasticity.corner[4 * e + k] += f[k]
+        return B
+
+    @ti.kernel
+    def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, tolerance: ti.f64,
+                          first: ti.i32) -> ti.f64:
+        """rhs <- -grad E = M v^ + dt M g - (1 + dt alpha) M v - (gathered tet terms), and the
+        per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2.
+        Returns `gradient_norm`."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_gradient[b] = 0.0
+            if first:
+                self.body_scale[b], self.body_momentum[b] = 0.0, 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            m = self.model.mass[i]
+            g = ti.Vector.zero(float, 3)
+            if ti.static(self.has_gravity):
+                g = dt * m * self.effects.gravity_vector()
+            tets = self.elasticity.gather(i)
+            rhs = m * v0[i] + g - (1.0 + dt * self.effects.mass_damping[None]) * m * v[i] - tets
+            self.rhs[i] = rhs
+            b = self.model.vertex_body[i]
+            self.body_gradient[b] += ti.cast(self.effects.filtered(i, rhs).norm_sqr(), ti.f64)
+            if first:   # |M v_n|^2 + |dt f|^2 + |dt M g|^2: not |rhs|^2, which is ~0 at rest
+                momentum = ti.cast(self.effects.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
+                self.body_momentum[b] += momentum
+                self.body_scale[b] += momentum + ti.cast(self.effects.filtered(i, tets).norm_sqr()
+                                                         + self.effects.filtered(i, g).norm_sqr(), ti.f64)
+        return self.gradient_norm(tolerance, first)
+
+    @ti.func
+    def gradient_norm(self, tolerance, first):
+        """sum_b |grad_b|^2 / (tol^2 s_b^2 + floor_b): <= 1 exactly when every body has
+        converged, relative to its own scale s_b or below its round-off floor.
+        On the first call a body whose momentum |M v_n| is above the floor counts as not
+        converged: v = 0 is no answer for a moving body, even one so stiff (in f32) that its
+        whole gradient is below the floor; it would stop dead."""
+        rho = ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if first:
+                self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]
+                                                     + self.body_floor[b]), float)
+                if self.body_momentum[b] > self.body_floor[b]:
+                    rho += 2.0
+            rho += self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b])
+        return rho
+
+    # ------------------------------------------------------------ H u
+
+    @ti.func
+    def apply_H(self, i, u: ti.template(), cM, cK):
+        """(H u)_i = cM m_i u_i + cK (K u)_i, filtered; K u gathered from the elasticity's corners."""
+        return self.effects.filtered(i, cM * self.model.mass[i] * u[i] + cK * self.elasticity.gather(i))

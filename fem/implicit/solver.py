@@ -1,0 +1,257 @@
+"""The implicit step, composed: `ImplicitSolver.step(state_in, state_out, dt)` reads top to bottom.
+
+The solver makes its parts once per Model and `Switches` (fem/pool.py) and hands each the
+parts it reads; each part owns its fields and kernels (fem/implicit/__init__.py lists them).
+What the step remembers between steps: the rotations (warm starts), the last velocity
+change (the first guess), the ground's contacts and which bodies sleep.
+"""
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from fem.implicit.effects import Effects
+from fem.implicit.elasticity import Elasticity
+from fem.implicit.linear import LinearSolver
+from fem.implicit.newton import Newton
+from fem.implicit.potential import ROUNDOFF, IncrementalPotential
+from fem.implicit.preconditioner import Preconditioner
+from fem.implicit.rotations import Rotations
+from fem.implicit.safeguards import AFTER, BEFORE, Safeguards
+from fem.implicit.sleep import Sleep
+from fem.runtime import epsilon, serial_loops
+
+
+@dataclass
+class StepInfo:
+    """What one implicit step did.
+
+    finite: every new position and velocity is finite (else the caller keeps the old state).
+    converged: every body's gradient met the tolerance (single step: the linear solve did).
+    residual: sqrt(sum over bodies of (|grad_b E| / s_b)^2), dimensionless; <= tolerance when converged.
+    newton_iters: Newton iterations (1 for a single step or an all-linear scene).
+    solver_iters: CG or Jacobi iterations summed over the Newton iterations.
+    line_search_steps: step halvings summed over the Newton iterations.
+    energy_limited: bodies whose total energy the step would have raised, so that their
+        velocities relative to their centre of mass were scaled back to the energy they had.
+    rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
+    """
+
+    finite: bool
+    converged: bool
+    residual: float | None
+    newton_iters: int
+    solver_iters: int
+    line_search_steps: int
+    energy_limited: int
+    rotation_ms: float
+    solve_ms: float
+
+
+@dataclass(frozen=True)
+class Switches:
+    """What a solver compiles in or out: the effects a scene calls for (gravity, ground,
+    stiffness damping, pins), and whether its loops run on one thread (small meshes)."""
+
+    gravity: bool
+    ground: bool
+    stiffness_damping: bool
+    pins: bool
+    serial_tets: bool
+    serial_vertices: bool
+
+    @classmethod
+    def of(cls, effects, n_vertices, n_tets, has_pins):
+        return cls(effects.gravity is not None, effects.ground is not None, effects.beta > 0, has_pins,
+                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"))
+
+
+@ti.data_oriented
+class ImplicitSolver:
+    """The implicit step for one model; `load`ed for each scene, then `step` is the whole step.
+    Loops over bodies run on one thread: for a few bodies a second thread costs more than it saves."""
+
+    def __init__(self, model, switches):
+        self.model, self.switches = model, switches
+        self.serial_vertices = switches.serial_vertices
+        self.sleep = Sleep(model, switches.serial_vertices)
+        self.rotations = Rotations(model, self.sleep, switches)
+        self.elasticity = Elasticity(model, self.rotations, self.sleep, switches)
+        self.effects = Effects(model, self.elasticity, self.sleep, switches)
+        self.potential = IncrementalPotential(model, self.elasticity, self.rotations, self.effects, self.sleep,
+                                              switches)
+        self.preconditioning = Preconditioner(model, self.rotations, self.effects, self.sleep, switches)
+        self.linear = LinearSolver(model, self.potential, self.elasticity, self.preconditioning, self.effects,
+                                   self.sleep, switches)
+        self.newton = Newton(model, self.potential, self.linear, self.rotations, self.effects, self.sleep, switches)
+        self.safeguards = Safeguards(model, self.elasticity, self.effects, self.sleep, switches)
+
+    @property
+    def parts(self):
+        """Every part holding fields (the coarse level once made)."""
+        parts = (self.sleep, self.rotations, self.elasticity, self.effects, self.potential,
+                 self.preconditioning, self.linear, self.newton, self.safeguards)
+        return parts + ((self.patches,) if self.patches is not None else ())
+
+    def step(self, state_in, state_out, dt):
+        """One backward Euler step from state_in into state_out; returns a StepInfo.
+
+        state_in is never written. When the result is not finite, state_out holds garbage
+        and the caller keeps state_in (a rejected step is a step not swapped in). The step
+        works on the potential's own copies (x0, v0: the start; x, v: the iterate), so every
+        kernel is compiled once, not once per State.
+        """
+        start = time.perf_counter()
+        settings, model, p = self.settings, self.model, self.potential
+        corotational, ground = model.any_corotational, self.switches.ground
+        # linear: one Newton iteration is exact; the naive variant has no energy to minimise
+        newton = settings.step == "newton" and corotational and not model.any_naive
+        cM, cK = p.coefficients(dt)
+        self.refresh(cM, cK, dt)
+        scale = dt / self.last_dt if self.last_dt > 0 else 0.0          # extrapolate the last change this far
+        tolerance = max(settings.tolerance, ROUNDOFF * epsilon())       # none below round-off
+
+        # the inertia target (backward Euler: x_n, v_n) and the first iterate, v = 0
+        p.begin(state_in.x, state_in.v)
+        rotation_ms, turned = self.update_rotations(p.x, corotational, first=True, scale=scale)   # R(x_n)
+        if newton:
+            self.safeguards.body_energy(p.x, p.v, BEFORE)                # x, v = x_n, v_n still
+        self.newton.start_iterate(p.x0, p.v0, p.x, p.v, dt)             # chooses the ground's contacts
+        self.preconditioning.update(p.x, cM, cK, turned, corotational, exact=newton or settings.method != "pcg",
+                                    reuse=not newton, two_level=self.preconditioner == "two-level")
+
+        # minimise E: Newton with a line search per body, or the one-solve step
+        solve = self.newton.solve if newton else self.newton.one_solve
+        solved = solve(cM, cK, dt, tolerance, scale, settings, self.preconditioner)
+
+        # the ground's reaction, then the safeguards: finite, momentum, energy
+        if ground:
+            self.effects.ground_reaction(p.rhs, self.linear.solution, cM, cK, newton)
+        finite = self.safeguards.check_finite(p.x, p.v) == 0 and math.isfinite(solved.rho)
+        limited = 0
+        if finite and ground:
+            self.effects.ground_contact(p.x, p.v)
+        if finite and not ground:
+            self.safeguards.restore_momentum(p.v0, p.x0, p.x, p.v, dt)
+        if finite and newton:
+            self.safeguards.body_energy(p.x, p.v, AFTER)
+            limited = self.safeguards.limit_energy(p.x0, p.x, p.v, dt)
+        self.finish(state_out.x, state_out.v, int(finite))
+        self.last_dt = dt
+        ti.sync()
+
+        residual = tolerance * math.sqrt(max(solved.rho, 0.0))
+        rotation_ms += solved.rotation_ms
+        wall_ms = 1e3 * (time.perf_counter() - start)
+        return StepInfo(finite=finite, converged=bool(solved.rho <= 1.0 or solved.settled),
+                        residual=residual if math.isfinite(residual) else None,
+                        newton_iters=max(solved.newton_iters, 1), solver_iters=solved.solver_iters,
+                        line_search_steps=solved.halvings, energy_limited=limited, rotation_ms=rotation_ms,
+                        solve_ms=wall_ms - rotation_ms)
+
+    # ------------------------------------------------------------ a scene, live edits, memory
+
+    def load(self, effects, settings):
+        """Start on the model's current scene: its effects' values and the solver settings
+        (read at every step: a window may change them live)."""
+        model = self.model
+        assert Switches.of(effects, model.n_vertices, model.n_tets, model.has_pins) == self.switches
+        self.settings = settings
+        self.effects.load(effects)
+        # the per-body inputs of the kernels, kept here and written together (write_bodies)
+        self.pinned_np = np.array([(model.free_np[b.vertices] == 0).any() for b in model.bodies], np.int32)
+        self.awake_np = np.ones(len(model.bodies), np.int32)
+        self.floor_np = self.speed_floor_np = np.zeros(len(model.bodies))      # set by refresh
+        self.model_version = None                             # (model edit, dt) the cached data is for
+        self.preconditioning.load()
+        self.linear.load()
+        self.reset()
+
+    def reset(self):
+        """Forget everything from earlier steps: rotations, warm starts, ground contacts, sleep."""
+        self.wake(np.ones(len(self.model.bodies)))
+        self.rotations.unrotate()
+        self.forget_change(contacts=True)
+        self.preconditioning.reset()
+
+    def wake(self, awake):
+        """Which bodies the step moves: (bodies,) of 0 (asleep: left exactly as they are) or 1."""
+        self.awake_np = np.asarray(awake, np.int32)
+        self.write_bodies()
+        self.preconditioning.rebuild()                        # a body that wakes has no blocks yet
+
+    def forget_change(self, contacts=False):
+        """The next step starts its solve from v_n itself: after a new state, the last step's
+        velocity change says nothing about the next one. contacts: forget the ground's too."""
+        self.clear_history(int(contacts))
+        self.preconditioning.forget()                         # the blocks are for other rotations
+        self.last_dt = 0.0                                    # s, the dt of the step that made the change
+
+    def refresh(self, cM, cK, dt):
+        """Re-derive what depends on the model's methods and materials after a live edit."""
+        if (self.model.version, dt) != self.model_version:
+            self.model_version = (self.model.version, dt)
+            self.preconditioning.rebuild()
+            self.linear.forget_weight()
+            self.floor_np = self.model.body_floor(ROUNDOFF * epsilon(), dt)
+            self.speed_floor_np = self.model.body_speed_floor(ROUNDOFF * epsilon(), dt)
+            self.write_bodies()
+            if not self.model.any_corotational and self.rotations.rotated:
+                self.rotations.unrotate()                     # every body switched to linear
+        if self.settings.method == "jacobi":
+            self.linear.jacobi_weight(cM, cK, self.settings.jacobi_omega)
+
+    def update_rotations(self, x, corotational, first=False, scale=0.0):
+        """Rotations at positions x, when some body is corotational: (ms, rad turned), as
+        Rotations.update with the settings' SVD choice and twist stiffness (Newton's)."""
+        if not corotational:
+            return 0.0, 0.0
+        twist = self.settings.step == "newton" and not self.model.any_naive
+        return self.rotations.update(x, self.settings.rotations == "svd", twist, first, scale)
+
+    @property
+    def preconditioner(self):
+        """The PCG preconditioner in use: "two-level" or "jacobi" (block Jacobi); None for Jacobi iteration."""
+        return Preconditioner.kind(self.settings, self.model.n_vertices)
+
+    @property
+    def patches(self):
+        """The coarse level (fem/coarse.py), None until a two-level solve made it."""
+        return self.preconditioning.patches
+
+    def write_bodies(self):
+        """The per-body inputs (pinned, awake, round-off floors) into their parts' fields, in one kernel."""
+        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np)
+
+    @ti.kernel
+    def _write_bodies(self, pinned: ti.types.ndarray(), awake: ti.types.ndarray(),
+                      floor: ti.types.ndarray(), speed_floor: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
+        for b in range(pinned.shape[0]):
+            self.safeguards.body_pinned[b], self.sleep.awake[b] = pinned[b], awake[b]
+            self.potential.body_floor[b], self.newton.body_speed_floor[b] = floor[b], speed_floor[b]
+
+    @ti.kernel
+    def clear_history(self, contacts: ti.i32):
+        """The last step's velocity change <- 0; with contacts, which vertices the ground pressed too."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.newton.change[i] = ti.Vector.zero(float, 3)
+            if ti.static(self.switches.ground):
+                if contacts:
+                    self.effects.pressed[i] = 0
+
+    @ti.kernel
+    def finish(self, x: ti.template(), v: ti.template(), good: ti.i32):
+        """state_out <- the iterate; the last change <- v - v_n for the next step's first guess
+        (0 after a step whose result is not finite)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            x[i], v[i] = self.potential.x[i], self.potential.v[i]
+            dv = ti.Vector.zero(float, 3)
+            if good:
+                dv = self.potential.v[i] - self.potential.v0[i]
+            self.newton.change[i] = dv
