@@ -20,6 +20,8 @@ SOLVERS = ("pcg", "jacobi")
 PRECONDITIONERS = ("auto", "two-level", "jacobi")
 ROTATIONS = ("iterative", "svd")
 STEPS = ("newton", "single")
+# The integrator: what the step's incremental potential is built from (fem/implicit/potential.py)
+INTEGRATORS = ("backward-euler", "bdf2")
 
 
 @dataclass
@@ -107,8 +109,9 @@ class Effects:
 class SolverSettings:
     dt: float = 0.02                    # s
     step: str = "newton"                # "newton": minimise the incremental potential | "single": one solve
+    integrator: str = "backward-euler"  # "backward-euler" (first order) | "bdf2" (second order, two steps)
     max_newton: int = 20                # Newton iterations per step at most
-    newton_tolerance: float = 1e-3      # per body: stop when a Newton iteration changes |v|_M by less
+    newton_tolerance: float = 1e-5      # per body: stop (unconverged) when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration
     tolerance: float = 1e-4             # per body: |grad E| / (size of the step's own terms)
     max_iterations: int = 200           # linear solver iterations per Newton iteration
@@ -123,6 +126,8 @@ class SolverSettings:
             raise FemError(f"{where}: dt must be > 0, got {self.dt}")
         if self.step not in STEPS:
             raise FemError(f"{where}: step must be one of {STEPS}, got {self.step!r}")
+        if self.integrator not in INTEGRATORS:
+            raise FemError(f"{where}: integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
         if not self.newton_tolerance > 0:
             raise FemError(f"{where}: newton_tolerance must be > 0, got {self.newton_tolerance}")
         if not self.max_newton >= 1:

@@ -38,21 +38,21 @@ def add_velocity(v: ti.template(), free: ti.template(), ids: ti.types.ndarray(),
 
 
 class Simulation:
-    """Steps one scene with backward Euler; see fem.implicit for the maths.
+    """Steps one scene with an implicit integrator; see fem.implicit for the maths.
 
     method: None keeps each body's own method, "linear" / "corotational" overrides all.
-    solver ("pcg" | "jacobi"), step ("newton" | "single"), dt (s), tolerance,
-    max_iterations: override the scene's solver settings where not None.
+    solver ("pcg" | "jacobi"), step ("newton" | "single"), integrator ("backward-euler" |
+    "bdf2"), dt (s), tolerance, max_iterations: override the scene's solver settings where not None.
     """
 
     def __init__(self, scene, method=None, solver=None, dt=None, tolerance=None, max_iterations=None,
-                 step=None):
+                 step=None, integrator=None):
         if method is not None:
             if method not in METHODS:
                 raise FemError(f"method must be one of {METHODS}, got {method!r}")
             scene = scene.with_method(method)
         overrides = {"method": solver, "dt": dt, "tolerance": tolerance, "max_iterations": max_iterations,
-                     "step": step}
+                     "step": step, "integrator": integrator}
         settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
         settings.check(scene.path or scene.name)
         self.scene = scene                      # the description; never edited
@@ -136,6 +136,7 @@ class Simulation:
             info = self.solver.step(self.state, self.spare, dt)
         else:                                   # everything sleeps: the step would change nothing
             info = StepInfo(True, True, 0.0, 0, 0, 0, 0, 0.0, 0.0)
+            self.solver.history.forget()
         self.steps += 1
         if info.finite:
             if any(self.awake):
@@ -168,6 +169,7 @@ class Simulation:
         if len(ids):
             self.wake(np.unique(self.model.vertex_body_np[ids]).tolist())
             add_velocity(self.state.v, self.model.free, ids, dv)
+            self.solver.history.forget()          # v jumped: a two-step integrator starts again
 
     def set_state(self, x, v):
         """Replace the positions x (m) and velocities v (m/s), (n, 3) numpy each."""

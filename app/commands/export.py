@@ -103,7 +103,8 @@ def run(args) -> int:
     scene = scenes.load_scene(args.scene, overrides=args.set)
     sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
                          solver=args.solver, dt=args.dt, tolerance=args.tol,
-                         max_iterations=args.max_iters, step=args.step)
+                         max_iterations=args.max_iters, step=args.step,
+                         integrator=args.integrator)
     steps = steps_per_frame(args.steps_per_frame, args.fps or TARGET_FPS, args.speed, sim.settings.dt)
     fps = args.fps or video_rate(steps, sim.settings.dt, args.speed)
     view = View(sim, scene, args.compare, args.color, args.renderer, width, height)

@@ -21,7 +21,8 @@ def build_simulation(args):
     """The Simulation the common options ask for (scene, method, solver overrides, --set)."""
     scene = scenes.load_scene(args.scene, overrides=args.set)
     return fem.Simulation(scene, method=args.method, solver=args.solver, dt=args.dt,
-                          tolerance=args.tol, max_iterations=args.max_iters, step=args.step)
+                          tolerance=args.tol, max_iterations=args.max_iters, step=args.step,
+                          integrator=args.integrator)
 
 
 def run(args) -> int:

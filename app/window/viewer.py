@@ -87,7 +87,8 @@ class Viewer(Controls, Panel):
             scene = scene.side_by_side(gap=max(0.5, float(width)))
         self.sim = None       # the old scene's fields go back to the pool: a scene of the same kind compiles nothing
         sim = fem.Simulation(scene, method=None if args.compare else args.method, solver=args.solver,
-                             dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters, step=args.step)
+                             dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters, step=args.step,
+                             integrator=args.integrator)
         self.warm_up_due = True          # after the scene's first frame is shown (loop)
         self.sim, self.ref = sim, ref
         model = sim.model

@@ -7,8 +7,11 @@ by a violent impulse never sets the step for a quiet one. E_b is summed in float
 whose decrease is below the round-off of its E_b has nothing left to gain and stops.
 
 Convergence is tested per body: the gradient relative to the size of the step's own terms
-(IncrementalPotential.gradient_norm), or the velocity change of the last iteration relative
-to the body's momentum (`velocity_change`), each with a round-off floor.
+(IncrementalPotential.gradient_norm), with a round-off floor. Only that test makes a step
+"converged". The iteration also stops, unconverged, when every body's velocity stopped
+changing (`velocity_change`: the last iteration moved no body's velocity by more than
+newton_tolerance of its size), when no body can descend further at this precision, or after
+max_newton iterations; the step's stats then say it did not converge.
 
 The first Newton iteration from v = 0 is the classical one-solve (stiffness-warping) step:
 `one_solve` stops there, without line search. Either starts its first solve from the last
@@ -42,8 +45,9 @@ FORCING = 0.1            # inexact Newton: CG reduces the gradient by this facto
 @dataclass
 class Solved:
     """What the nonlinear solve did: rho, the weighted gradient norm at its end (<= 1: every
-    body converged); settled: every body's velocity stopped changing, or none could descend;
-    iterations and halvings summed; rotation_ms: time in its rotation extractions."""
+    body converged, the only meaning of "converged"); settled: it stopped early because every
+    body's velocity stopped changing or none could descend; iterations and halvings summed;
+    rotation_ms: time in its rotation extractions."""
 
     rho: float
     settled: bool = False
@@ -63,7 +67,6 @@ class Newton:
         n, nb = model.capacity.vertices, model.capacity.bodies
         self.model, self.potential, self.linear, self.rotations = model, potential, linear, rotations
         self.effects, self.sleep = effects, sleep
-        self.has_ground = switches.ground
         self.serial_vertices = switches.serial_vertices
         self.velocity = ti.Vector.field(3, float, n)
         self.change = ti.Vector.field(3, float, n)
@@ -83,12 +86,15 @@ class Newton:
         p.energy(p.v0, p.x, p.v, h, first=True)              # E_b of every body at the first iterate
         out = Solved(rho=p.gradient_vertices(p.v0, p.v, h, tolerance, 1))   # its tet terms came with E
         self.accept(p.v, 1)
+        # E is quadratic on linear bodies off the ground: their direction is solved to the
+        # tolerance at once, and one iteration is the answer
+        quadratic = not self.model.any_corotational and not self.effects.has_ground
         while out.rho > 1.0 and out.newton_iters < settings.max_newton:
-            target = max(1.0, FORCING ** 2 * out.rho)
+            target = 1.0 if quadratic else max(1.0, FORCING ** 2 * out.rho)
             out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
                                                preconditioner)
             out.newton_iters += 1
-            if self.start_search() == 0:                      # no body's decrement above round-off
+            if self.start_search(tolerance) == 0:             # no body has anything left to gain
                 out.settled = True
                 break
             for _ in range(MAX_HALVINGS + 1):
@@ -133,27 +139,30 @@ class Newton:
         """The iterate of each body's own step a_b along d, and its rotations; returns their ms."""
         p = self.potential
         self.try_step(p.x0, p.x, p.v, h, 1)
+        if not self.model.any_corotational:                  # linear tets keep R = I
+            return 0.0
         ms, _ = self.rotations.update(p.x, settings.rotations == "svd", twist=True)
         return ms
 
     @ti.kernel
-    def start_iterate(self, x0: ti.template(), v0: ti.template(), x: ti.template(), v: ti.template(),
-                      dt: float):
-        """The first Newton iterate: v = 0, except the normal velocity of vertices on the ground,
-        prescribed so that they land on the plane (the ground's active set is chosen here)."""
+    def start_iterate(self, xn: ti.template(), vn: ti.template(), x0: ti.template(), x: ti.template(),
+                      v: ti.template(), h: float, dt: float):
+        """The first Newton iterate: v = 0, x = x^, except the normal velocity of vertices on the
+        ground, prescribed so that they land on the plane (the ground's active set is chosen here,
+        from the step's start x_n, v_n)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             u = ti.Vector.zero(float, 3)
-            if ti.static(self.has_ground):
+            if ti.static(self.effects.has_ground):
                 self.effects.contact[i] = 0
                 awake = self.sleep.awake[self.model.vertex_body[i]]
-                if awake and self.model.free[i] > 0 and (x0[i][1] + dt * v0[i][1] < self.effects.ground[None]
+                if awake and self.model.free[i] > 0 and (xn[i][1] + dt * vn[i][1] < self.effects.ground[None]
                                                          or self.effects.pressed[i]):
                     self.effects.contact[i] = 1
-                    u[1] = (self.effects.ground[None] - x0[i][1]) / dt
+                    u[1] = (self.effects.ground[None] - x0[i][1]) / h
             self.velocity[i] = u
             v[i] = u
-            x[i] = x0[i] + dt * u
+            x[i] = x0[i] + h * u
 
     @ti.kernel
     def start_direction(self, v0: ti.template(), warm: ti.i32, scale: float):
@@ -169,10 +178,12 @@ class Newton:
             self.linear.solution[i] = d
 
     @ti.kernel
-    def start_search(self) -> ti.i32:
+    def start_search(self, tolerance: ti.f64) -> ti.i32:
         """body_slope[b] <- grad_b E . d_b (J, < 0 where d descends). A body whose decrease
-        -slope_b is above the round-off of its E_b searches, from a_b = 1; the others have
-        nothing left to gain (a_b = 0). Returns how many bodies search."""
+        -slope_b is above the round-off of its E_b, or whose gradient has not met the tolerance,
+        searches, from a_b = 1; the others have nothing left to gain (a_b = 0). Returns how many
+        bodies search. (Near the answer E changes by |grad|^2 / H: in f32 below E's round-off
+        from a gradient of about 1e-4 on, where only the gradient still tells how close it is.)"""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_slope[b] = 0.0
@@ -183,7 +194,10 @@ class Newton:
         count = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            self.searching[b] = int(-self.body_slope[b] > self.body_resolution[b])
+            unconverged = self.potential.body_gradient[b] > (tolerance * tolerance * self.potential.body_scale[b]
+                                                             + self.potential.body_floor[b])
+            self.searching[b] = int(self.body_slope[b] < 0 and (-self.body_slope[b] > self.body_resolution[b]
+                                                               or unconverged))
             self.body_step[b] = self.searching[b]
             count += self.searching[b]
         return count
@@ -197,7 +211,11 @@ class Newton:
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             if self.searching[b]:
-                if E[b] <= self.body_E_accepted[b] + ARMIJO * self.body_step[b] * self.body_slope[b]:
+                # within the round-off of E_b (f32 fields: positions rounded to 1e-7 of their size)
+                # a change is noise: without that slack the search would end at a gradient of
+                # sqrt(epsilon), 3e-4 in f32, where E can no longer tell better from worse
+                if E[b] <= self.body_E_accepted[b] + ARMIJO * self.body_step[b] * self.body_slope[b] \
+                        + self.body_resolution[b]:
                     self.searching[b] = 0
                 else:
                     self.body_step[b] *= 0.5

@@ -4,17 +4,21 @@ With the iterate x = x^ + h v, one step finds the velocity v that minimises
 
     E(v) = 1/2 |v - v^|_M^2 + h/2 v^T D v - h v^T M g + Psi(x^ + h v)        (J)
 
-D = alpha M + beta K_n: Rayleigh damping with the stiffness frozen in the step's starting
-frame (fem/implicit/rotations.py, `damping_frame`); Psi: the elastic energy (corotated linear
-or linear per body, fem/implicit/elasticity.py). Its stationarity condition
-M (v - v^) + h D v - h M g - h f(x) = 0 is the integrator's update, and E's Hessian is
+D = alpha M + beta K(R): Rayleigh damping with the stiffness in the frame of the current
+iterate's rotations R, so that a rigid turn is no strain rate and is not damped (beta acts on
+deformation rates only; alpha M is a drag on all motion). Psi: the elastic energy (corotated
+linear or linear per body, fem/implicit/elasticity.py). Its stationarity condition
+M (v - v^) + h D v - h M g - h f(x) = 0 is the integrator's update, and E's Hessian (R held) is
 
-    H = cM M + cK K(R),    cM = 1 + h alpha,  cK = h beta + h^2      (`coefficients`).
+    H = cM M + cK K(R),   cM = 1 + h alpha,  cK = h beta + h^2      (`coefficients`).
 
-What an integrator defines is its inertia target (x^, v^) and its effective step h. Backward
-Euler, the only one so far: x^ = x_n, v^ = v_n, h = dt (`begin`). A second integrator (BDF2:
-x^ = (4 x_n - x_(n-1)) / 3, v^ likewise, h = 2 dt / 3) writes another target into x0, v0 and
-passes its h: every pass here takes them as inputs.
+The ground is not (yet) a term of E: it is an active set of constraints (fem/implicit/effects.py)
+chosen at the step's start, so E falls along the line search but the ground's own work is
+outside it.
+
+What an integrator defines is its inertia target (x^, v^) and its effective step h
+(fem/implicit/integrators.py): backward Euler x^ = x_n, v^ = v_n, h = dt; BDF2
+x^ = (4 x_n - x_(n-1)) / 3, v^ likewise, h = 2 dt / 3. Every pass here takes them as inputs.
 
 Energies are summed per body in float64 whatever the fields' precision: bodies never
 interact, so E = sum_b E_b, and each body has its own line search and stopping test.
@@ -42,7 +46,7 @@ ROUNDOFF = 30.0          # per-body floors of the stopping tests, in units of th
 @ti.data_oriented
 class IncrementalPotential:
     """E(v), grad E(v) and H u for one model, over the parts that define them: `elasticity`
-    (Psi's tet terms), `rotations` (the damping frame), `effects` (gravity, damping,
+    (Psi's tet terms), `rotations` (R at the iterate), `effects` (gravity, damping,
     constraints) and `sleep` (a sleeping body's terms are 0)."""
 
     def __init__(self, model, elasticity, rotations, effects, sleep, switches):
@@ -69,12 +73,22 @@ class IncrementalPotential:
 
     @ti.kernel
     def begin(self, x: ti.template(), v: ti.template()):
-        """Backward Euler's inertia target: x0, v0 <- the step's start x_n, v_n; the iterate x, v
+        """x0, v0 <- the step's start x_n, v_n (backward Euler's inertia target); the iterate x, v
         too (also how checks copy a state in)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             self.x0[i], self.v0[i] = x[i], v[i]
             self.x[i], self.v[i] = x[i], v[i]
+
+    @ti.kernel
+    def multistep_target(self, x_prev: ti.template(), v_prev: ti.template(), a: float, b: float):
+        """x0, v0 <- a x_n + b x_(n-1), a v_n + b v_(n-1): a two-step integrator's inertia target
+        (after `begin`). A sleeping body keeps x_n, v_n: it rests exactly."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            if self.sleep.awake[self.model.vertex_body[i]]:
+                self.x0[i] = a * self.x0[i] + b * x_prev[i]
+                self.v0[i] = a * self.v0[i] + b * v_prev[i]
 
     # ------------------------------------------------------------ E
 
@@ -102,7 +116,7 @@ class IncrementalPotential:
 
     @ti.kernel
     def energy_tets(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
-        """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K_n v_b, summed in float64 (J), a chunk of
+        """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K(R) v_b, summed in float64 (J), a chunk of
         tets at a time (as in Safeguards.body_energy); corner <- the tet terms of grad E at
         (x, v), in the same pass: a trial iterate the line search accepts needs its gradient
         next. moving=0: v is 0 (as in gradient_corners), so the damping terms are too."""
@@ -136,7 +150,7 @@ class IncrementalPotential:
 
     @ti.kernel
     def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
-        """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K_n v)_e.
+        """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K(R) v)_e.
         moving=0: v is 0 (the step's first iterate, no ground), so the damping term is too."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
@@ -144,14 +158,15 @@ class IncrementalPotential:
 
     @ti.func
     def gradient_tet(self, x: ti.template(), v: ti.template(), dt, moving, e):
-        """corner <- tet e's terms of grad E (gradient_corners). Returns the Bm R_n^T its damping
-        term used (0 without one), for energy_tets to reuse."""
+        """corner <- tet e's terms of grad E (gradient_corners). Returns the Bm R^T its damping
+        term used (0 without one), for energy_tets to reuse: R of the iterate, as the elastic
+        term's, so that a rigid turn (dF = W F with W skew) has no strain rate."""
         W = self.model.rest_volume[e] * self.sleep.tet_awake(e)     # a sleeping body's tets add nothing
         self.elasticity.store_corners(e, corner_forces(-dt * self.elasticity.elastic_stress(x, e),
                                                        self.rotations.rotated_Bm[e], W))
         B = ti.Matrix.zero(float, 3, 3)
         if ti.static(self.has_stiffness_damping) and moving:
-            B = self.rotations.damping_Bm(e)
+            B = self.rotations.rotated_Bm[e]
             dF = self.model.edges(v, e) @ B
             eps = 0.5 * (dF + dF.transpose())
             P = linear_stress(eps, self.model.mu(e), self.model.lam(e))

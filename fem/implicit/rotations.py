@@ -10,8 +10,6 @@ Linear tets keep rotated_Bm = Bm, so linear and corotational tets share every ke
 Fields (m tets of the capacity):
     rotated_Bm (m, 3x3)     Bm R^T at the current iterate, 1/m
     quaternions (m, 4)      R as (x, y, z, w): the next warm start
-    damping_frame (m, 4)    R_n as (x, y, z, w): the frame of the step's stiffness damping
-                            (one entry when the scene has no stiffness damping)
     turn (m, 3)             (x, y, z) of R_n R_(n-1)^-1, the last step's turn
     twist (m,)              twist stiffness of the Newton matrix, Pa
     needs_svd (m,)          1: the tet's R comes from the SVD
@@ -55,10 +53,8 @@ class Rotations:
     def __init__(self, model, sleep, switches):
         m = model.capacity.tets
         self.model, self.sleep = model, sleep
-        self.has_stiffness_damping = switches.stiffness_damping   # D includes beta K(R_n)
         self.serial_tets = switches.serial_tets
         self.rotated_Bm = ti.Matrix.field(3, 3, float, m)
-        self.damping_frame = ti.Vector.field(4, float, m if self.has_stiffness_damping else 1)
         self.quaternions = ti.Vector.field(4, float, m)
         self.turn = ti.Vector.field(3, float, m)
         self.twist = ti.field(float, m)
@@ -75,7 +71,7 @@ class Rotations:
         start = time.perf_counter()
         left = self.extract_rotations(x, svd, int(twist), int(first), scale)
         if left > 0:
-            self.svd_rotations(x, int(twist), int(first))
+            self.svd_rotations(x, int(twist))
         turned = 0.0
         if first:                                             # how far the blocks' rotations are off, at most
             turned = math.inf if left > 0 else 2.0 * math.asin(math.sqrt(min(float(self.largest_turn[None]), 1.0)))
@@ -94,8 +90,6 @@ class Rotations:
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
-            if ti.static(self.has_stiffness_damping):
-                self.damping_frame[e] = self.quaternions[e]
             self.turn[e] = ti.Vector.zero(float, 3)
             self.rotated_Bm[e] = self.model.Bm[e]
             self.twist[e] = 0.0
@@ -108,8 +102,7 @@ class Rotations:
         svd=False: warm-started Newton steps from last time's R; a tet where they do not
         certify their answer (a start far off, an inverted tet) is left for `svd_rotations`.
         first=1 (at x_n): they start from last time's R turned on by the last step's turn
-        (times `scale`, the ratio of the dts; 0: no last step) and record this step's turn,
-        and R_n as the frame of the step's stiffness damping.
+        (times `scale`, the ratio of the dts; 0: no last step) and record this step's turn.
         On a turning body one step then certifies R where the last R alone needs two.
         svd=True: every corotational tet is left for it (the reference).
         newton=1 also sets each tet's twist stiffness; 0 leaves it 0 (the one-solve step).
@@ -134,7 +127,7 @@ class Rotations:
                     if first:
                         start = quaternion_product(self.turn_quaternion(e, scale), last).normalized()
                     q, converged = newton_rotation(F, start)
-                    self.set_rotation(e, F, quaternion_matrix(q), q, newton, first)
+                    self.set_rotation(e, F, quaternion_matrix(q), q, newton)
                     if first:
                         turn = quaternion_product(q, conjugate(last))
                         if turn[3] < 0:                  # -p is the same turn: keep w >= 0
@@ -149,8 +142,6 @@ class Rotations:
                 self.turn[e] = ti.Vector.zero(float, 3)
                 self.twist[e] = 0.0
                 self.quaternions[e] = ti.Vector([0.0, 0.0, 0.0, 1.0])
-                if ti.static(self.has_stiffness_damping):
-                    self.damping_frame[e] = self.quaternions[e]
                 self.rotated_Bm[e] = self.model.Bm[e]
         return left
 
@@ -161,28 +152,21 @@ class Rotations:
         return ti.Vector([v[0], v[1], v[2], ti.sqrt(ti.max(1.0 - v.norm_sqr(), 0.0))])
 
     @ti.kernel
-    def svd_rotations(self, x: ti.template(), newton: ti.i32, first: ti.i32):
+    def svd_rotations(self, x: ti.template(), newton: ti.i32):
         """The polar rotation from the SVD (`polar_rotation`) for the tets left by extract_rotations."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             if self.needs_svd[e]:
                 F = self.model.edges(x, e) @ self.model.Bm[e]
                 R = polar_rotation(F)
-                self.set_rotation(e, F, R, quaternion_of(R), newton, first)
+                self.set_rotation(e, F, R, quaternion_of(R), newton)
 
     @ti.func
-    def set_rotation(self, e, F, R, q, newton, first):
+    def set_rotation(self, e, F, R, q, newton):
         self.quaternions[e] = q                               # the next warm start
-        if ti.static(self.has_stiffness_damping):
-            if first:
-                self.damping_frame[e] = q                     # D = alpha M + beta K(R_n) for the whole step
         self.rotated_Bm[e] = self.model.Bm[e] @ R.transpose()
         twist = 0.0
         if newton:
             twist = twist_stiffness((R.transpose() @ F).trace(), self.model.mu(e), self.model.lam(e))
         self.twist[e] = twist
 
-    @ti.func
-    def damping_Bm(self, e):
-        """Bm R_n^T of tet e: the damping stiffness K_n uses the rotations at the step's start."""
-        return self.model.Bm[e] @ quaternion_matrix(self.damping_frame[e]).transpose()

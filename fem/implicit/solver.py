@@ -15,6 +15,7 @@ import taichi as ti
 
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
+from fem.implicit.integrators import History
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
 from fem.implicit.potential import ROUNDOFF, IncrementalPotential
@@ -30,9 +31,10 @@ class StepInfo:
     """What one implicit step did.
 
     finite: every new position and velocity is finite (else the caller keeps the old state).
-    converged: every body's gradient met the tolerance (single step: the linear solve did).
+    converged: every body's gradient met the tolerance (single step: the linear solve did);
+        a Newton step that stopped for another reason (velocities settled, max_newton) did not.
     residual: sqrt(sum over bodies of (|grad_b E| / s_b)^2), dimensionless; <= tolerance when converged.
-    newton_iters: Newton iterations (1 for a single step or an all-linear scene).
+    newton_iters: Newton iterations (1 for a single step).
     solver_iters: CG or Jacobi iterations summed over the Newton iterations.
     line_search_steps: step halvings summed over the Newton iterations.
     energy_limited: bodies whose total energy the step would have raised, so that their
@@ -49,6 +51,7 @@ class StepInfo:
     energy_limited: int
     rotation_ms: float
     solve_ms: float
+    integrator: str = "backward-euler"    # the step's own: a two-step integrator restarts with backward Euler
 
 
 @dataclass(frozen=True)
@@ -88,44 +91,51 @@ class ImplicitSolver:
                                    self.sleep, switches)
         self.newton = Newton(model, self.potential, self.linear, self.rotations, self.effects, self.sleep, switches)
         self.safeguards = Safeguards(model, self.elasticity, self.effects, self.sleep, switches)
+        self.history = History(model, self.sleep, switches)
 
     @property
     def parts(self):
         """Every part holding fields (the coarse level once made)."""
         parts = (self.sleep, self.rotations, self.elasticity, self.effects, self.potential,
-                 self.preconditioning, self.linear, self.newton, self.safeguards)
+                 self.preconditioning, self.linear, self.newton, self.safeguards, self.history)
         return parts + ((self.patches,) if self.patches is not None else ())
 
     def step(self, state_in, state_out, dt):
-        """One backward Euler step from state_in into state_out; returns a StepInfo.
+        """One implicit step from state_in into state_out; returns a StepInfo.
 
         state_in is never written. When the result is not finite, state_out holds garbage
         and the caller keeps state_in (a rejected step is a step not swapped in). The step
-        works on the potential's own copies (x0, v0: the start; x, v: the iterate), so every
-        kernel is compiled once, not once per State.
+        works on the potential's own copies (x0, v0: the inertia target; x, v: the iterate),
+        so every kernel is compiled once, not once per State.
         """
         start = time.perf_counter()
         settings, model, p = self.settings, self.model, self.potential
         corotational, ground = model.any_corotational, self.switches.ground
-        # linear: one Newton iteration is exact; the naive variant has no energy to minimise
-        newton = settings.step == "newton" and corotational and not model.any_naive
-        cM, cK = p.coefficients(dt)
-        self.refresh(cM, cK, dt)
+        # every body minimises E; the naive variant has no energy to minimise: one solve
+        newton = settings.step == "newton" and not model.any_naive
+        target = self.history.target(settings.integrator, dt)
+        h = target.h_per_dt * dt                                        # the integrator's effective step
+        cM, cK = p.coefficients(h)
+        self.refresh(cM, cK, h, dt)
         scale = dt / self.last_dt if self.last_dt > 0 else 0.0          # extrapolate the last change this far
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())       # none below round-off
 
-        # the inertia target (backward Euler: x_n, v_n) and the first iterate, v = 0
+        # where the step starts, its energy, the integrator's inertia target, the first iterate v = 0
         p.begin(state_in.x, state_in.v)
         rotation_ms, turned = self.update_rotations(p.x, corotational, first=True, scale=scale)   # R(x_n)
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE)                # x, v = x_n, v_n still
-        self.newton.start_iterate(p.x0, p.v0, p.x, p.v, dt)             # chooses the ground's contacts
-        self.preconditioning.update(p.x, cM, cK, turned, corotational, exact=newton or settings.method != "pcg",
-                                    reuse=not newton, two_level=self.preconditioner == "two-level")
+        self.history.apply(target, p)                                   # x^, v^ (backward Euler: x_n, v_n)
+        self.newton.start_iterate(state_in.x, state_in.v, p.x0, p.x, p.v, h, dt)   # chooses the ground's contacts
+        if target.b != 0.0:
+            rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
+        exact = (newton and corotational) or settings.method != "pcg"     # linear: H never changes
+        self.preconditioning.update(p.x, cM, cK, turned, corotational, exact=exact, reuse=not exact,
+                                    two_level=self.preconditioner == "two-level")
 
         # minimise E: Newton with a line search per body, or the one-solve step
         solve = self.newton.solve if newton else self.newton.one_solve
-        solved = solve(cM, cK, dt, tolerance, scale, settings, self.preconditioner)
+        solved = solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
         # the ground's reaction, then the safeguards: finite, momentum, energy
         if ground:
@@ -135,18 +145,22 @@ class ImplicitSolver:
         if finite and ground:
             self.effects.ground_contact(p.x, p.v)
         if finite and not ground:
-            self.safeguards.restore_momentum(p.v0, p.x0, p.x, p.v, dt)
+            self.safeguards.restore_momentum(p.v0, p.x0, p.x, p.v, h)
         if finite and newton:
             self.safeguards.body_energy(p.x, p.v, AFTER)
-            limited = self.safeguards.limit_energy(p.x0, p.x, p.v, dt)
+            limited = self.safeguards.limit_energy(state_in.x, p.x, p.v, dt)
         self.finish(state_out.x, state_out.v, int(finite))
+        if finite:
+            self.history.remember(state_in.x, state_in.v, settings.integrator, dt)
+        else:
+            self.history.forget()
         self.last_dt = dt
         ti.sync()
 
         residual = tolerance * math.sqrt(max(solved.rho, 0.0))
         rotation_ms += solved.rotation_ms
         wall_ms = 1e3 * (time.perf_counter() - start)
-        return StepInfo(finite=finite, converged=bool(solved.rho <= 1.0 or solved.settled),
+        return StepInfo(finite=finite, converged=bool(solved.rho <= 1.0), integrator=target.name,
                         residual=residual if math.isfinite(residual) else None,
                         newton_iters=max(solved.newton_iters, 1), solver_iters=solved.solver_iters,
                         line_search_steps=solved.halvings, energy_limited=limited, rotation_ms=rotation_ms,
@@ -171,7 +185,8 @@ class ImplicitSolver:
         self.reset()
 
     def reset(self):
-        """Forget everything from earlier steps: rotations, warm starts, ground contacts, sleep."""
+        """Forget everything from earlier steps: rotations, warm starts, ground contacts, the
+        integrator's history, sleep."""
         self.wake(np.ones(len(self.model.bodies)))
         self.rotations.unrotate()
         self.forget_change(contacts=True)
@@ -184,20 +199,23 @@ class ImplicitSolver:
         self.preconditioning.rebuild()                        # a body that wakes has no blocks yet
 
     def forget_change(self, contacts=False):
-        """The next step starts its solve from v_n itself: after a new state, the last step's
-        velocity change says nothing about the next one. contacts: forget the ground's too."""
+        """The next step starts its solve from v_n itself, and a two-step integrator starts
+        again: after a new state, the last step says nothing about the next one.
+        contacts: forget the ground's too."""
         self.clear_history(int(contacts))
+        self.history.forget()
         self.preconditioning.forget()                         # the blocks are for other rotations
         self.last_dt = 0.0                                    # s, the dt of the step that made the change
 
-    def refresh(self, cM, cK, dt):
-        """Re-derive what depends on the model's methods and materials after a live edit."""
-        if (self.model.version, dt) != self.model_version:
-            self.model_version = (self.model.version, dt)
+    def refresh(self, cM, cK, h, dt):
+        """Re-derive what depends on the model's methods and materials (after a live edit), the
+        integrator's step h and dt."""
+        if (self.model.version, h, dt) != self.model_version:
+            self.model_version = (self.model.version, h, dt)
             self.preconditioning.rebuild()
             self.linear.forget_weight()
-            self.floor_np = self.model.body_floor(ROUNDOFF * epsilon(), dt)
-            self.speed_floor_np = self.model.body_speed_floor(ROUNDOFF * epsilon(), dt)
+            self.floor_np = self.model.body_floor(ROUNDOFF * epsilon(), h)
+            self.speed_floor_np = self.model.body_speed_floor(ROUNDOFF * epsilon(), h)
             self.write_bodies()
             if not self.model.any_corotational and self.rotations.rotated:
                 self.rotations.unrotate()                     # every body switched to linear

@@ -1,0 +1,185 @@
+"""The step's promises (issue 23), each checked with numbers against an independent reference:
+
+- "converged" means the gradient test passed: a converged step is as close to the exactly
+  solved step as its tolerance says;
+- a free body spinning without damping keeps its angular momentum with the default step, and
+  stiffness damping leaves rigid rotation alone (its stretch is the physical one, from an
+  assembled scipy solve of the rotating frame's equilibrium);
+- BDF2 is second order.
+(test_energy.py: total energy never rises, the ground on.)
+"""
+
+import math
+
+import numpy as np
+import pytest
+import scipy.sparse
+import scipy.sparse.linalg
+
+import fem
+from fem.scene import Effects, SolverSettings
+from tests.conftest import box_mesh, make_scene
+
+
+def spin(sim, omega, axis=1):
+    """Set every body spinning rigidly at omega (rad/s) about its centre along `axis`."""
+    x = sim.positions()
+    v = np.zeros_like(x)
+    for body in sim.model.bodies:
+        s = body.vertices
+        r = x[s] - x[s].mean(axis=0)
+        w = np.zeros(3)
+        w[axis] = omega
+        v[s] = np.cross(w, r)
+    sim.set_state(x, v)
+
+
+def angular_momentum(sim):
+    """(3,) total angular momentum about the centre of mass, kg m^2/s."""
+    n = sim.model.n_vertices
+    m = sim.model.mass.to_numpy()[:n].astype(np.float64)
+    x, v = sim.positions(), sim.velocities()
+    c = (m[:, None] * x).sum(0) / m.sum()
+    return (m[:, None] * np.cross(x - c, v)).sum(0)
+
+
+def volume_change(X, T, x):
+    """sum of the tets' volumes at x over those at X, minus 1."""
+    def volumes(p):
+        a, b, c, d = (p[T[:, k]] for k in range(4))
+        return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a)) / 6
+    return volumes(x).sum() / volumes(X).sum() - 1
+
+
+# ---------------------------------------------------------------- converged means converged
+
+def wrung_box(nu=0.49):
+    """A 320-tet-ish box (cells 4 x 2 x 2... as cube(cells=3): 162 tets) twisted 90 degrees about x."""
+    mesh = box_mesh(3)
+    X = mesh.vertices
+    angle = 0.5 * math.pi * (X[:, 0] - X[:, 0].min()) / np.ptp(X[:, 0]) - 0.25 * math.pi
+    c, s = np.cos(angle), np.sin(angle)
+    x = X.copy()
+    x[:, 1], x[:, 2] = c * X[:, 1] - s * X[:, 2], s * X[:, 1] + c * X[:, 2]
+    return mesh, x
+
+
+@pytest.mark.parametrize("dt", [0.01, 0.02])
+def test_a_converged_step_is_within_its_tolerance_of_the_exact_step(f64, dt):
+    mesh, twisted = wrung_box()
+    exact, loose = (fem.Simulation(make_scene(mesh, nu=0.49, E=1e5), dt=dt, tolerance=tol)
+                    for tol in (1e-11, 1e-4))
+    exact.settings = SolverSettings(dt=dt, tolerance=1e-11, max_newton=500, max_iterations=2000,
+                                    newton_tolerance=1e-14)
+    for sim in (exact, loose):
+        sim.set_state(twisted, np.zeros_like(twisted))
+    reference = exact.step()
+    assert reference["converged"]
+    info = loose.step()
+    assert info["converged"] == (info["residual"] <= 1e-4), info
+    if info["converged"]:
+        v, v_exact = loose.velocities(), exact.velocities()
+        assert np.linalg.norm(v - v_exact) <= 1e-2 * np.linalg.norm(v_exact)
+
+
+def test_no_step_reports_converged_above_its_tolerance(f32):
+    mesh, twisted = wrung_box()
+    sim = fem.Simulation(make_scene(mesh, nu=0.49, E=1e5), dt=0.01, tolerance=1e-4)
+    sim.set_state(twisted, np.zeros_like(twisted))
+    for _ in range(20):
+        info = sim.step()
+        assert not info["converged"] or info["residual"] <= 1e-4, info
+
+
+# ---------------------------------------------------------------- rigid rotation is left alone
+
+def spinning_box(alpha=0.0, beta=0.0, integrator=None):
+    scene = make_scene(box_mesh(3), E=2e5, nu=0.3, effects=Effects(alpha=alpha, beta=beta),
+                       solver=SolverSettings(dt=0.02))
+    if integrator is not None:
+        scene.solver.integrator = integrator
+    sim = fem.Simulation(scene)
+    sim.settings.sleep = False
+    spin(sim, 3.0)
+    return sim
+
+
+def centrifugal_stretch(sim, omega):
+    """J - 1 of the body spinning steadily at omega about y: K u = omega^2 M P (X - c), linear
+    elasticity assembled with scipy (rigid modes removed by the solve's minimum norm)."""
+    from tests.test_elastic import reference_Ke
+    model = sim.model
+    n = model.n_vertices
+    X = model.rest_positions.to_numpy()[:n].astype(np.float64)
+    T = model.tets.to_numpy()[:model.n_tets]
+    E, nu = 2e5, 0.3
+    rows, cols, vals = [], [], []
+    for t in T:
+        Ke = reference_Ke(X[t], E, nu)
+        idx = (3 * t[:, None] + np.arange(3)).ravel()
+        rows.append(np.repeat(idx, 12))
+        cols.append(np.tile(idx, 12))
+        vals.append(Ke.ravel())
+    K = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                shape=(3 * n, 3 * n)).toarray()
+    m = model.mass.to_numpy()[:n].astype(np.float64)
+    r = X - (m[:, None] * X).sum(0) / m.sum()
+    r[:, 1] = 0.0
+    f = (omega ** 2 * m[:, None] * r).ravel()
+    u = np.linalg.lstsq(K, f, rcond=1e-10)[0].reshape(n, 3)
+    return volume_change(X, T, X + u)
+
+
+def test_a_free_spinning_body_keeps_its_angular_momentum_with_bdf2(f64):
+    kept = {}
+    for integrator in ("backward-euler", "bdf2"):
+        sim = spinning_box(integrator=integrator)
+        start = angular_momentum(sim)[1]
+        for _ in range(100):                      # 2 s
+            sim.step()
+        kept[integrator] = angular_momentum(sim)[1] / start
+    assert kept["bdf2"] >= 0.99, kept
+    assert kept["backward-euler"] < kept["bdf2"]  # backward Euler's own damping: first order
+
+
+def test_stiffness_damping_leaves_rigid_rotation_alone(f64):
+    sim = spinning_box(beta=0.1, integrator="bdf2")
+    start = angular_momentum(sim)[1]
+    for _ in range(100):
+        sim.step()
+    assert angular_momentum(sim)[1] / start >= 0.98
+    n = sim.model.n_vertices
+    X = sim.model.rest_positions.to_numpy()[:n].astype(np.float64)
+    J = volume_change(X, sim.model.tets.to_numpy()[:sim.model.n_tets], sim.positions())
+    physical = centrifugal_stretch(sim, 3.0)
+    assert physical > 0
+    assert abs(J - physical) <= 0.1 * physical
+
+
+# ---------------------------------------------------------------- BDF2's order
+
+def twisting_bar(dt, integrator, seconds=0.4):
+    """A free 2 x 0.5 x 0.5 m bar spinning and twisting, no effects: positions after `seconds`.
+    Soft enough (E 2 kPa) that dt 0.02 s resolves its fastest mode: the asymptotic range."""
+    mesh = box_mesh(2)
+    mesh = type(mesh)(mesh.vertices * [2.0, 0.5, 0.5], mesh.tets, mesh.source)
+    scene = make_scene(mesh, E=2e3, nu=0.3, solver=SolverSettings(dt=dt, tolerance=1e-10, max_newton=100,
+                                                                   max_iterations=1000, newton_tolerance=1e-12))
+    scene.solver.integrator = integrator
+    sim = fem.Simulation(scene)
+    sim.settings.sleep = False
+    x = sim.positions()
+    v = np.cross([1.0, 2.0, 0.0], x - x.mean(0)) + np.cross([3.0, 0.0, 0.0], x) * x[:, :1]
+    sim.set_state(x, v - v.mean(0))
+    for _ in range(round(seconds / dt)):
+        sim.step()
+    return sim.positions()
+
+
+@pytest.mark.slow
+def test_bdf2_is_second_order_and_backward_euler_first(f64):
+    for integrator, order in (("bdf2", 1.8), ("backward-euler", 0.8)):
+        reference = twisting_bar(0.00125, integrator)
+        errors = [np.abs(twisting_bar(dt, integrator) - reference).max() for dt in (0.02, 0.01, 0.005)]
+        slopes = [math.log2(a / b) for a, b in zip(errors, errors[1:])]
+        assert min(slopes) >= order, (integrator, errors, slopes)
