@@ -11,6 +11,7 @@ shape runs with `main.py simulate my_shape.obj`.
 """
 
 import difflib
+import math
 import hashlib
 import inspect
 from pathlib import Path
@@ -148,6 +149,8 @@ def _typed(value, default, key):
         return tuple(_typed(v, d, f"{key}[{i}]") for i, (v, d) in enumerate(zip(value, default)))
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise FemError(f"{key} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise FemError(f"{key} must be a finite number, got {value!r}")
     if isinstance(default, int):
         if not float(value).is_integer():
             raise FemError(f"{key} must be an integer, got {value!r}")

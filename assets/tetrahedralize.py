@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fem.errors import FemError
+from fem.limits import check_file_size
 from fem.mesh import check_tet_count, prepare_mesh
 
 # Bump when the output for the same input changes (tool, options, file layout),
@@ -55,6 +56,7 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
     if not (isinstance(edge_length, (int, float)) and 0 < edge_length <= 1):
         raise FemError(f"{path}: edge_length must be a fraction in (0, 1] of the bounding-box "
                        f"diagonal, got {edge_length!r}")
+    check_file_size(path)
     try:
         data = path.read_bytes()
     except OSError as error:
@@ -111,6 +113,7 @@ def load_surface(path):
     """(n, 3) float64 vertices and (f, 3) int32 triangles of a surface file."""
     import trimesh
 
+    check_file_size(Path(path))
     try:
         surface = trimesh.load(path, force="mesh")
     # trimesh raises many types for unreadable files; each means "not a surface".

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError
+from fem.errors import FemError, excerpt
 from fem.mesh import read_tet_mesh
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
 
@@ -97,7 +97,7 @@ def read_coursework_scene(path):
 
 def parse_count(words, path, n, what):
     if len(words) != 1:
-        raise FemError(f"{path}:{n}: expected the {what} alone on the line, got {' '.join(words)!r}")
+        raise FemError(f"{path}:{n}: expected the {what} alone on the line, got {excerpt(' '.join(words))}")
     return parse_index(words[0], path, n)
 
 
@@ -105,7 +105,7 @@ def parse_index(word, path, n):
     try:
         value = int(word)
     except ValueError:
-        raise FemError(f"{path}:{n}: expected a non-negative integer, got {word!r}") from None
+        raise FemError(f"{path}:{n}: expected a non-negative integer, got {excerpt(word)}") from None
     if value < 0:
         raise FemError(f"{path}:{n}: expected a non-negative integer, got {value}")
     return value
@@ -116,7 +116,7 @@ def parse_numbers(words, path, n):
         values = [float(w) for w in words]
     except ValueError:
         bad = next(w for w in words if not is_float(w))
-        raise FemError(f"{path}:{n}: expected a number, got {bad!r}") from None
+        raise FemError(f"{path}:{n}: expected a number, got {excerpt(bad)}") from None
     if not np.all(np.isfinite(values)):
         raise FemError(f"{path}:{n}: numbers must be finite, got {' '.join(words)}")
     return values

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from fem import limits
 from fem.errors import FemError
 from fem.mesh import TetMesh, signed_volumes
 
@@ -37,12 +38,13 @@ class Material:
         return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
 
     def check(self, where):
-        if not self.E > 0:
-            raise FemError(f"{where}: E must be > 0, got {self.E}")
+        if not 0 < self.E <= limits.MAX_YOUNG_MODULUS:
+            raise FemError(f"{where}: E must be > 0 and at most {limits.MAX_YOUNG_MODULUS:g} Pa, got {self.E}")
         if not -1.0 < self.nu < 0.5:
             raise FemError(f"{where}: nu must be in (-1, 0.5), got {self.nu}")
-        if not self.density > 0:
-            raise FemError(f"{where}: density must be > 0, got {self.density}")
+        if not 0 < self.density <= limits.MAX_DENSITY:
+            raise FemError(f"{where}: density must be > 0 and at most {limits.MAX_DENSITY:g} kg/m^3, "
+                           f"got {self.density}")
 
 
 @dataclass
@@ -121,6 +123,7 @@ class SolverSettings:
     def check(self, where):
         if not self.dt > 0:
             raise FemError(f"{where}: dt must be > 0, got {self.dt}")
+        limits.check_range(self.dt, *limits.DT_RANGE, f"{where}: dt", " s")
         if self.step not in STEPS:
             raise FemError(f"{where}: step must be one of {STEPS}, got {self.step!r}")
         if not self.newton_tolerance > 0:
