@@ -23,7 +23,7 @@ from fem.mesh import MESHIO_READ_EXTENSIONS, TetMesh, read_tet_mesh
 
 from assets.bunny import bunny
 from assets.generators import box, dome, statue
-from assets.tetrahedralize import (cache_dir, load_surface, read_cache_entry, tetrahedralize_surface,
+from assets.tetrahedralize import (cache_dir, cached_mesh, load_surface, tetrahedralize_surface,
                                    write_cache_entry)
 
 GENERATORS = {"box": box, "dome": dome, "statue": statue, "bunny": bunny}
@@ -117,9 +117,10 @@ def _from_generator(spec):
     for path in GENERATOR_CODE:
         key.update(path.read_bytes())
     cached = cache_dir() / f"generated-{key.hexdigest()}.npz"
-    arrays = read_cache_entry(cached, "source")
-    if arrays is not None:
-        return TetMesh(arrays[0], arrays[1], str(arrays[2]))
+    entry = cached_mesh(cached, "cache", "source")
+    if entry is not None:
+        mesh, source = entry
+        return TetMesh(mesh.vertices, mesh.tets, str(source))
     mesh = generator(**params)
     write_cache_entry(cached, (mesh.vertices, mesh.tets), source=np.array(mesh.source))
     return mesh
