@@ -102,7 +102,7 @@ def build_mesh(spec, base_dir, where):
 
 def _from_generator(spec):
     name = spec["generator"]
-    if name not in GENERATORS:
+    if not isinstance(name, str) or name not in GENERATORS:
         raise FemError(f"unknown generator {name!r}{_closest_hint(str(name), GENERATORS)}; "
                        f"known: {', '.join(GENERATORS)}")
     generator = GENERATORS[name]
