@@ -120,6 +120,19 @@ def free_name(path: Path) -> Path:
     raise FemError(f"{path}: too many files named {path.stem}-N{path.suffix}")
 
 
+def open_stream(path, overwrite: bool):
+    """Open `path` to write rows into as they come (the window's --stats: `tail -f` follows
+    it while the window is open), not under a temporary name. Without overwrite the file
+    must not exist (another run may have created it since the check)."""
+    mode = "w" if overwrite or is_special(path) else "x"
+    try:
+        return open(path, mode, buffering=1)
+    except FileExistsError:
+        raise FemError(f"{path}: file exists; use --overwrite to replace it") from None
+    except OSError as error:
+        raise write_failed(path, error) from None
+
+
 def truncate_to_last_line(file_descriptor):
     """Cut a file of text lines back to its last complete line (a full disk can stop a
     write half way through a row); returns the number of complete lines kept."""

@@ -116,3 +116,23 @@ def test_the_hint_for_options_without_a_command_names_a_command_that_takes_them(
     one_error_line(err, "main.py simulate epcot --steps 5")
     code, out, err = run("--frames", "5")
     one_error_line(err, "main.py export epcot --frames 5")
+
+
+def test_compare_labels_follow_the_methods_and_the_panel_names_them():
+    from types import SimpleNamespace
+
+    from app.viewer import copy_methods, shown_name
+    assert copy_methods(["linear", "corotational"], 1) == ["linear", "corotational"]
+    assert copy_methods(["linear", "linear", "linear", "linear"], 2) == ["linear", "linear"]
+    assert copy_methods(["linear", "corotational", "corotational", "corotational"], 2) == ["mixed", "corotational"]
+    body = SimpleNamespace(name="cube (linear)", method="corotational")
+    assert shown_name(body, 1) == "cube (corotational)" and shown_name(body, 0) == "cube (linear)"
+
+
+def test_a_drag_arrow_starts_at_the_hit_point_and_points_to_the_mouse():
+    from app.viewer import arrow_beads
+    point, push = np.zeros(3), np.array([2.0, 0.0, 0.0])
+    drag = arrow_beads(point, push, 0.5, 5, "tail")
+    np.testing.assert_allclose(drag[[0, -1]], [[0, 0, 0], [1, 0, 0]])
+    click = arrow_beads(point, push, 0.5, 5, "tip")
+    np.testing.assert_allclose(click[[0, -1]], [[-1, 0, 0], [0, 0, 0]])

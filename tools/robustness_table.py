@@ -163,7 +163,7 @@ negative means it only fell. `tests/test_energy.py` requires it below the tolera
 
 ## Bad input
 
-Each runs `python main.py simulate ARGS` in a folder holding only the listed case's files;
+Each runs `.venv/bin/python main.py simulate ARGS` in a folder holding only the listed case's files;
 the program prints one line on stderr and exits with code 2 (a traceback only with `--debug`).
 
 | input | command | exit | stderr |
