@@ -91,8 +91,7 @@ def catalogue():
     """Every figure, in the order made: the one drawn from a file first (a bad file is found before
     any run), and figures that share a run after the first to need it."""
     figures = [Figure("accuracy_vs_time", "the benchmark's error against time, from its results", accuracy_plot,
-                      lambda maker: None if maker.bench.is_file() else
-                      f"{maker.bench} not found (`main.py bench --docs` writes it, in about 25 minutes)")]
+                      benchmark_missing)]
     figures += [Figure(f"volume_{name}", f"{name}: volume over time, linear vs corotational",
                        lambda maker, name=name: volume_plot(maker, name))
                 for name in scenes.builtin_scenes()]
@@ -112,6 +111,18 @@ def catalogue():
                hard_case_energy, lambda maker: None if hard_cases() else
                "needs tools/cases.py, which a clone has and an installed package does not"),
     ]
+
+
+def benchmark_missing(maker):
+    """Why accuracy_vs_time cannot be drawn (no benchmark results), or None. An installed package
+    has no docs/ to read them from or write them into: it measures its own into a folder."""
+    from app.cli import program_name
+    if maker.bench.is_file():
+        return None
+    if bench.DOCS.is_dir():
+        return f"{maker.bench} not found (`{program_name()} bench --docs` writes it, in about 25 minutes)"
+    return (f"{maker.bench} not found: an installed package has no docs/ folder; `{program_name()} bench "
+            f"--out DIR` measures the results (about 25 minutes), then `figures --bench DIR/results.json`")
 
 
 class Maker:

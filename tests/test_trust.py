@@ -136,3 +136,11 @@ def test_a_drag_arrow_starts_at_the_hit_point_and_points_to_the_mouse():
     np.testing.assert_allclose(drag[[0, -1]], [[0, 0, 0], [1, 0, 0]])
     click = arrow_beads(point, push, 0.5, 5, "tip")
     np.testing.assert_allclose(click[[0, -1]], [[-1, 0, 0], [0, 0, 0]])
+
+
+def test_an_installed_package_says_how_to_get_the_benchmark_figure(tmp_path, monkeypatch):
+    from app import bench, figures
+    monkeypatch.setattr(bench, "DOCS", tmp_path / "site-packages" / "docs")       # not there once installed
+    maker = figures.Maker(quick=True, cggs=None, bench_results=bench.DOCS / "benchmark.json")
+    why = figures.benchmark_missing(maker)
+    assert "installed package has no docs/" in why and "bench --out DIR" in why and "--docs" not in why
