@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fem import limits
 from fem.errors import FemError, excerpt
 from fem.mesh import read_tet_mesh
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
@@ -23,6 +24,7 @@ def read_coursework_scene(path):
     path = Path(path)
     if not path.is_file():
         raise FemError(f"{path}: no such scene file")
+    limits.check_file_size(path)
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as e:
@@ -39,6 +41,7 @@ def read_coursework_scene(path):
 
     n, words = next_line("the number of meshes")
     n_meshes = parse_count(words, path, n, "number of meshes")
+    limits.check_body_count(n_meshes, f"{path}:{n}")
     if n_meshes == 0:
         raise FemError(f"{path}:{n}: a scene needs at least one mesh, got 0")
     header = n
@@ -63,6 +66,7 @@ def read_coursework_scene(path):
         if not np.linalg.norm(pose[3:]) > 0:
             raise FemError(f"{path}:{n}: the rotation quaternion must be non-zero")
         placed = place_mesh(meshes[mesh_path], pose[:3], pose[3:])
+        limits.check_placed(placed.vertices, placed.tets, f"{path}:{n}")
         pinned = np.arange(len(placed.vertices)) if fixed else np.zeros(0, np.int64)
         bodies.append(Body(f"{Path(words[0]).stem}{i}", placed, material, "corotational", pinned))
 

@@ -126,7 +126,7 @@ def test_a_name_longer_than_the_file_system_allows_is_one_error_line(here):
 
 
 def test_an_error_quotes_a_short_excerpt_of_a_file_not_its_line(here):
-    (here / "system.mesh").write_text("root:x:0:0:" + "x" * 5000 + "\x1b[31m\n")
+    (here / "system.mesh").write_text("1 root:x:0:0:" + "x" * 5000 + "\x1b[31m\n")
     code, out, err = run("simulate", "system.mesh", "--steps", "1")
     assert code == 2
     line = one_error_line(err, "system.mesh")

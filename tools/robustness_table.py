@@ -16,6 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import fem  # noqa: E402
 import numpy as np  # noqa: E402
 
+from tools.hostile import HOSTILE, run_hostile  # noqa: E402
 from tools.cases import (BAD_INPUTS, CLI_HARD_CASES, ENERGY_DTS, ENERGY_STEPS, ENERGY_TOLERANCE,  # noqa: E402
                          HARD_CASES, METHODS, ROOT, energy_history, forced_failures, groups, run_bad_input,
                          run_cli_case, run_hard_cases)
@@ -109,7 +110,54 @@ def bad_input_rows():
     return rows
 
 
+def hostile_rows():
+    """(rows of every hostile case, rows of the count per class with the exit codes seen)."""
+    rows, seen = [], {}
+    for case in HOSTILE:
+        with tempfile.TemporaryDirectory() as folder:
+            code, stderr = run_hostile(case, folder)
+        # Paths as a user would see them from the folder, not this machine's temporary names.
+        stderr = stderr.replace(str(Path(folder).resolve()) + "/", "").replace(folder + "/", "")
+        stderr = stderr.replace(str(ROOT) + "/", "")
+        lines = stderr.strip().splitlines()
+        line = (lines[-1] if lines else "").replace("|", "\\|")
+        shown = line if len(line) <= 160 else line[:160] + "..."
+        rows.append(f"| {case.kind} | {case.name} | {code} | `{shown}` |")
+        seen.setdefault(case.kind, []).append(code)
+    counts = [f"| {kind} | {len(codes)} | {', '.join(f'{codes.count(c)} x exit {c}' for c in sorted(set(codes)))} |"
+              for kind, codes in seen.items()]
+    return rows, counts
+
+
+# What the tests run as separate processes (signals, pipes, two runs at once, a mounted disk):
+# the classes and what the program does, with the test that checks each.
+PROCESS_CLASSES = [
+    ("two exports at once, same --video", "the first to finish puts its video in place; the other exits 2, "
+     "its video kept beside it as v-2.mp4; neither claims the other's file", "test_outputs.py"),
+    ("--out another export is writing", "refused: exit 2, `another run is writing into this folder`", "test_outputs.py"),
+    ("--overwrite over a folder with other files", "replaces frame_00000 .. frame_{N-1} only; older frames and "
+     "other files are left, and a note says so", "test_outputs.py"),
+    ("full disk (a 64 kB tmpfs, and a writer raising ENOSPC)", "exit 2, `PATH: no space left on device; kept the "
+     "N complete rows` (or frames, and the video closed on them)", "test_outputs.py"),
+    ("a killed run's `.NAME.PID.xxxx.part` files", "removed by the next run into the folder (their process is "
+     "gone); they never make a folder count as non-empty", "test_outputs.py"),
+    ("two or three SIGTERMs 5 ms apart", "exit 130, complete rows kept; later signals are ignored",
+     "test_outputs.py"),
+    ("`simulate --stats - \\| head -c 100`", "stops quietly, exit 141 (128 + SIGPIPE), no traceback",
+     "test_outputs.py"),
+    ("a poisoned cache entry (vertex index -1408)", "rebuilt: entries carry a checksum and are checked like a "
+     "mesh file", "test_trust.py"),
+    ("TI_ARCH=opengl or xyz with --arch cpu", "a warning that TI_ARCH is ignored; runs on the CPU, exit 0",
+     "test_trust.py"),
+    ("TI_CPU_MAX_NUM_THREADS=abc", "exit 2, `Taichi cannot start with the environment variables ...`",
+     "test_trust.py"),
+    ("fuzzed TOML scene values and --set values (hypothesis, 600 examples)", "a Scene or one FemError",
+     "test_fuzz_scenes.py"),
+]
+
+
 def main():
+    hostile, hostile_counts = hostile_rows()
     bad = bad_input_rows()
     hard = hard_case_rows()
     energy = energy_rows()
@@ -160,6 +208,28 @@ negative means it only fell. `tests/test_energy.py` requires it below the tolera
 | command | result |
 |---|---|
 {chr(10).join(cli)}
+
+## Hostile input
+
+What a hostile user would try (`tools/hostile.py`, checked by `tests/test_hostile.py`): each runs
+`.venv/bin/python main.py ARGS` in a folder holding only its files. Sizes are checked from the
+description before anything is allocated (peak memory of the largest refused description, a box
+of 2000^3 cells or 10,000 bodies: about 150 MB, the program's own imports); `--allow-large`
+lifts the size limits, not the ranges of numbers.
+
+| class | tried | exit codes |
+|---|---|---|
+{chr(10).join(hostile_counts)}
+
+| class | input | exit | stderr (last line) |
+|---|---|---|---|
+{chr(10).join(hostile)}
+
+Checked by the tests as separate processes:
+
+| class | what the program does | test |
+|---|---|---|
+{chr(10).join(f"| {what} | {does} | `tests/{test}` |" for what, does, test in PROCESS_CLASSES)}
 
 ## Bad input
 
