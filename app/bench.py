@@ -52,7 +52,7 @@ import taichi as ti
 
 import fem
 import scenes
-from app import device, direct, startup
+from app import device, direct, outputs, startup
 from app.files import atomic_open, check_output, refuse_overwrite
 from app.progress import Progress
 from assets.generators import box
@@ -900,6 +900,7 @@ def destination(args):
     it replaces (they are under version control) and which only the full plan may write."""
     if not args.docs:
         refuse_overwrite(args.out, args.overwrite)
+        outputs.remove_stale_temporaries(args.out)     # what a killed run left
         return Path(args.out), RESULT_FILES
     if args.quick or args.scenes:
         raise FemError(f"--docs records the full benchmark; drop {'--quick' if args.quick else '--scenes'}")

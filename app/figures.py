@@ -44,7 +44,7 @@ from PIL import Image
 
 import fem
 import scenes
-from app import EXIT_INTERRUPTED, bench, device
+from app import EXIT_INTERRUPTED, bench, device, outputs
 from app.export import DIVIDER_COLOR, View
 from app.files import atomic_open, refuse_overwrite
 from fem.errors import FemError
@@ -422,6 +422,7 @@ def run(args) -> int:
     maker = Maker(args.quick, check_cggs(args.cggs), bench_results)
     figures, skipped = chosen(catalogue(), args.only, maker)
     refuse_overwrite(out, args.overwrite)
+    outputs.remove_stale_temporaries(out)          # what a killed run left
     device.start(args)
 
     began, written = time.perf_counter(), []

@@ -80,7 +80,6 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise FemError(f"{path.parent}: cannot create folder: {e.strerror}") from None
-    outputs.remove_stale_temporaries(path.parent, path.name)
     fd, tmp = tempfile.mkstemp(prefix=outputs.temporary_prefix(path), suffix=".part", dir=path.parent)
 
     def put_in_place():

@@ -9,10 +9,12 @@ import json
 import statistics
 import sys
 from array import array
+from pathlib import Path
 
 import fem
 import scenes
 from app import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, device
+from app import outputs
 from app.files import atomic_open, refuse_overwrite
 from app.progress import Progress
 from fem.mesh import mesh_quality
@@ -30,6 +32,7 @@ def run(args) -> int:
     to_file = args.stats is not None and args.stats != "-"
     if to_file:
         refuse_overwrite(args.stats, args.overwrite)
+        outputs.remove_stale_temporaries(Path(args.stats).parent, Path(args.stats).name)
     device.start(args)
     sim = build_simulation(args)
     rows = Tally()
