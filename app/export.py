@@ -157,7 +157,9 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
         kept = (f"kept the {written} complete frames {out / FRAME_NAME.format(0)} .. "
                 f"{FRAME_NAME.format(written - 1)}" if written else "no frame was complete")
         also = f" and {video} with {writer.frames} frames" if writer.active and writer.frames else ""
-        print(f"interrupted at frame {written} of {args.frames}: {kept}{also}", file=sys.stderr)
+        older = older_frames(out, written)
+        earlier = f"; {older[0]} .. {older[-1]} are older, not from this export" if older else ""
+        print(f"interrupted at frame {written} of {args.frames}: {kept}{also}{earlier}", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(summary(timings, steps, view.renderer.name))
     if video is not None:

@@ -272,3 +272,24 @@ def test_a_reader_that_goes_away_stops_the_run_quietly(tmp_path):
     err = process.stderr.read()
     assert process.wait(timeout=120) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err
+
+
+def test_an_interrupted_overwriting_export_says_which_frames_are_older(here, monkeypatch):
+    out = here / "o"
+    out.mkdir()
+    for index in range(5):
+        (out / f"frame_{index:05d}.png").write_text("an earlier export's frame")
+    from app import export
+    real, calls = export.write_png, []
+
+    def write_png(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(export, "write_png", write_png)
+    code, stdout, err = run(*SMALL_EXPORT, "--out", "o", "--overwrite")
+    assert code == 130
+    assert "kept the 2 complete frames" in err and "frame_00002.png .. frame_00004.png are older" in err
+    assert (out / "frame_00004.png").read_text() == "an earlier export's frame"
