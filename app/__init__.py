@@ -11,11 +11,22 @@ Rooms by role, each importing only downwards (tests/test_layout.py checks it):
                  the direct baseline and the start-up timings
 
 The plumbing that every room uses sits here at the top, one small module each: files.py
-(atomic writes, overwrite checks, interrupts), progress.py (progress bars and log lines),
-device.py (the Taichi back end), display.py (whether a window can open). They import nothing
-from the rooms, and a sub-package of four small modules would only lengthen every import.
+(atomic writes, overwrite checks, interrupts), outputs.py (special files, locked folders, a
+killed run's leftovers, full disks), progress.py (progress bars and log lines), device.py (the
+Taichi back end), display.py (whether a window can open), and program_name() below. They import
+nothing from the rooms, and a sub-package of five small modules would only lengthen every import.
 """
 
+import sys
+from pathlib import Path
+
 # Exit codes of every command: done, the run failed (every step rejected), bad input
-# (one `error:` line), interrupted (Ctrl-C or SIGTERM; complete files kept).
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+# (one `error:` line), interrupted (Ctrl-C or SIGTERM; complete files kept), the reader
+# of stdout went away (`| head`; 128 + SIGPIPE, as a shell reports a tool killed by it).
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 0, 1, 2, 130, 141
+
+
+def program_name():
+    """'softfem' when run as the installed command, else 'main.py' (for the commands a message
+    suggests; here, not in cli.py, so that every room can name them)."""
+    return "softfem" if Path(sys.argv[0]).name == "softfem" else "main.py"

@@ -17,11 +17,13 @@ Exit codes: 0 done, 1 the run failed (every step rejected), 2 bad input,
 """
 
 import argparse
+import errno
 import math
+import os
 import sys
 from pathlib import Path
 
-from app import EXIT_BAD_INPUT, EXIT_INTERRUPTED
+from app import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, program_name
 from app.display import display_problem
 from app.files import check_output, interrupt_on_sigterm
 from fem.errors import FemError, SizeLimitError
@@ -66,7 +68,12 @@ screenshot of the window (`view epcot --compare`, then the p key)."""
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse that reports a usage mistake as one `error:` line and exit code 2."""
+    """argparse that reports a usage mistake as one `error:` line and exit code 2, and takes
+    options only as written in full (`--steps` is not taken for `--steps-per-frame`)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):
         print(f"error: {self.prog}: {message} (see --help)", file=sys.stderr)
@@ -219,11 +226,6 @@ class Version(argparse.Action):
         parser.exit()
 
 
-def program_name():
-    """'softfem' when run as the installed command, else 'main.py'."""
-    return "softfem" if Path(sys.argv[0]).name == "softfem" else "main.py"
-
-
 def default_arguments():
     """What a bare `main.py` does: the window where a display is usable, otherwise an
     export of the default scene into a folder of its own (out/epcot, out/epcot-2, ...)."""
@@ -245,6 +247,28 @@ def fresh_folder(name, parent="out"):
         copy += 1
         out = Path(parent) / f"{name}-{copy}"
     return out
+
+
+def command_taking(argv, commands):
+    """The first of simulate, export, view that takes every option in argv (for the hint
+    after `main.py --steps 5`); else export."""
+    options = [word.split("=")[0] for word in argv if word.startswith("--")]
+    for name in ("simulate", "export", "view"):
+        if all(option in commands[name]._option_string_actions for option in options):
+            return name
+    return "export"
+
+
+def reader_gone():
+    """The reader of stdout went away (`... --stats - | head`): stop quietly, as other
+    command-line tools do, with SIGPIPE's exit code; stdout goes to /dev/null so that
+    Python's final flush does not fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):   # stdout without a file descriptor (tests)
+        pass
+    return EXIT_BROKEN_PIPE
 
 
 def dispatch(args, parser):
@@ -299,17 +323,17 @@ def main(argv=None) -> int:
         # Flags alone (`main.py --linear`) start nothing: they belong to a command.
         example = " ".join(argv if not argv[0].startswith("-") else [DEFAULT_SCENE, *argv])
         parser.error(f"no command given; commands: {', '.join(commands)}; "
-                     f"e.g. `{parser.prog} export {example}`")
+                     f"e.g. `{parser.prog} {command_taking(argv, commands)} {example}`")
     args = parser.parse_args(argv)
     if args.command is None:
         parser.error(f"no command given; commands: {', '.join(commands)}")
 
-    from fem import mesh
+    from fem import limits, mesh
     limit = mesh.MAX_TETS
     try:
         if getattr(args, "allow_large", False):
             mesh.MAX_TETS = None
-        with interrupt_on_sigterm():
+        with interrupt_on_sigterm(), limits.lifted(getattr(args, "allow_large", False)):
             return dispatch(args, parser)
     except FemError as e:
         if args.debug:
@@ -321,5 +345,12 @@ def main(argv=None) -> int:
         # The commands say what they kept; this is an interruption before they wrote anything.
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        return reader_gone()
+    except OSError as e:
+        if args.debug or e.errno != errno.ENAMETOOLONG:
+            raise
+        print(f"error: {e.filename}: file name too long", file=sys.stderr)
+        return EXIT_BAD_INPUT
     finally:
         mesh.MAX_TETS = limit

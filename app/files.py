@@ -13,15 +13,18 @@ import signal
 import tempfile
 from pathlib import Path
 
+from app import outputs
 from fem.errors import FemError
 
 
 def refuse_overwrite(path, overwrite, flag="--overwrite"):
-    """FemError if `path` exists (a file) or is a non-empty folder and overwrite is off."""
+    """FemError if `path` exists (a file) or is a non-empty folder and overwrite is off.
+    A special file (/dev/null, a FIFO) is streamed to, not replaced, so it is no obstacle;
+    the temporary files of a killed run do not make a folder non-empty."""
     path = Path(path)
-    if overwrite:
+    if overwrite or outputs.is_special(path):
         return
-    if path.is_dir() and any(path.iterdir()):
+    if path.is_dir() and outputs.holds_user_files(path):
         raise FemError(f"{path}: folder is not empty; use {flag} to write into it anyway")
     if path.is_file():
         raise FemError(f"{path}: file exists; use {flag} to replace it")
@@ -38,6 +41,8 @@ def check_output(path, option, kind):
     """
     path = Path(path)
     where = f"{option} {path}"
+    if kind == "file" and outputs.is_special(path):
+        return                    # written as a stream (atomic_open)
     if kind == "file" and path.is_dir():
         raise FemError(f"{where}: is a folder; give a file name")
     folder = path if kind == "folder" else path.parent
@@ -55,46 +60,72 @@ def check_output(path, option, kind):
 
 
 @contextlib.contextmanager
-def atomic_open(path, mode="w", keep_if_interrupted=False):
+def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
     """Open a temporary file beside `path`; on success it replaces `path`, on error it vanishes.
 
     keep_if_interrupted: for a stream of complete records (one JSON row per line,
     each written with one call): on Ctrl-C or SIGTERM (KeyboardInterrupt) what was
-    written so far still replaces `path`, so an interrupted run keeps its rows.
+    written so far still replaces `path`, so an interrupted run keeps its rows, and on
+    a full disk the complete rows are kept as well (FemError saying so).
+    overwrite: False puts the file in place only if no other run created `path` meanwhile
+    (app.outputs.put_in_place). A special file (/dev/null, a FIFO) is opened and written
+    directly, never replaced.
     """
     path = Path(path)
+    if outputs.is_special(path):
+        yield from _stream(path, mode)
+        return
     if not path.parent.is_dir():
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise FemError(f"{path.parent}: cannot create folder: {e.strerror}") from None
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=outputs.temporary_prefix(path), suffix=".part", dir=path.parent)
 
     def put_in_place():
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, path)
+        outputs.put_in_place(tmp, path, overwrite)
 
     try:
         try:
-            with os.fdopen(fd, mode) as f:
+            with os.fdopen(fd, mode, closefd=False) as f:
                 yield f
         except KeyboardInterrupt:
             if keep_if_interrupted:
                 put_in_place()
             raise
+        except OSError as error:
+            if error.errno not in outputs.WRITE_ERRORS:
+                raise
+            if not keep_if_interrupted:
+                raise outputs.write_failed(path, error) from None
+            rows = outputs.truncate_to_last_line(fd)
+            put_in_place()
+            raise outputs.write_failed(path, error, f"kept the {rows} complete rows written before") from None
         put_in_place()
     finally:
+        os.close(fd)
         with contextlib.suppress(OSError):
             os.unlink(tmp)
 
 
+def _stream(path, mode):
+    """Write straight into a special file (a device, a FIFO), as to stdout."""
+    try:
+        f = open(path, mode)
+    except OSError as error:
+        raise FemError(f"{path}: cannot write ({error.strerror})") from None
+    with f:
+        yield f
+
+
 def atomic_path(path):
-    """A temporary path beside `path` keeping its suffix (for writers that want a file name);
-    call os.replace(tmp, path) when it is complete."""
+    """A temporary path beside `path` keeping its suffix (for writers that want a file name),
+    this process's own; call app.outputs.put_in_place(tmp, path, overwrite) when it is complete."""
     path = Path(path)
-    return path.with_name(f".{path.stem}.part{path.suffix}")
+    return path.with_name(f".{path.stem}.{os.getpid()}.part{path.suffix}")
 
 
 def numbered_path(folder, stem: str, suffix: str) -> Path:
@@ -122,13 +153,27 @@ def signals_handled(signals, handler):
             signal.signal(s, old)
 
 
+@contextlib.contextmanager
 def interrupt_on_sigterm():
     """Treat SIGTERM (a killed job, a cancelled CI step) like Ctrl-C, so that a run
-    stops the same way: complete files kept, temporary ones removed, exit code 130."""
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
+    stops the same way: complete files kept, temporary ones removed, exit code 130.
 
-    return signals_handled([signal.SIGTERM], interrupt)
+    Only the first Ctrl-C or SIGTERM interrupts; later ones (a second signal a few ms
+    after the first, while the run is already stopping) are ignored, here and after
+    the block, so that they cannot cut the clean-up short or change the exit code."""
+    arrived = []
+
+    def interrupt(signum, frame):
+        arrived.append(signum)
+        if len(arrived) == 1:
+            raise KeyboardInterrupt
+
+    with signals_handled([signal.SIGINT, signal.SIGTERM], interrupt):
+        yield
+    if arrived:
+        with contextlib.suppress(ValueError):       # not the main thread
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @contextlib.contextmanager

@@ -11,6 +11,7 @@ shape runs with `main.py simulate my_shape.obj`.
 """
 
 import difflib
+import math
 import hashlib
 import inspect
 from pathlib import Path
@@ -22,7 +23,7 @@ from fem.mesh import MESHIO_READ_EXTENSIONS, TetMesh, read_tet_mesh
 
 from assets.bunny import bunny
 from assets.generators import box, dome, statue
-from assets.tetrahedralize import (cache_dir, load_surface, read_cache_entry, tetrahedralize_surface,
+from assets.tetrahedralize import (cache_dir, cached_mesh, load_surface, tetrahedralize_surface,
                                    write_cache_entry)
 
 GENERATORS = {"box": box, "dome": dome, "statue": statue, "bunny": bunny}
@@ -101,7 +102,7 @@ def build_mesh(spec, base_dir, where):
 
 def _from_generator(spec):
     name = spec["generator"]
-    if name not in GENERATORS:
+    if not isinstance(name, str) or name not in GENERATORS:
         raise FemError(f"unknown generator {name!r}{_closest_hint(str(name), GENERATORS)}; "
                        f"known: {', '.join(GENERATORS)}")
     generator = GENERATORS[name]
@@ -116,9 +117,10 @@ def _from_generator(spec):
     for path in GENERATOR_CODE:
         key.update(path.read_bytes())
     cached = cache_dir() / f"generated-{key.hexdigest()}.npz"
-    arrays = read_cache_entry(cached, "source")
-    if arrays is not None:
-        return TetMesh(arrays[0], arrays[1], str(arrays[2]))
+    entry = cached_mesh(cached, "cache", "source")
+    if entry is not None:
+        mesh, source = entry
+        return TetMesh(mesh.vertices, mesh.tets, str(source))
     mesh = generator(**params)
     write_cache_entry(cached, (mesh.vertices, mesh.tets), source=np.array(mesh.source))
     return mesh
@@ -148,6 +150,8 @@ def _typed(value, default, key):
         return tuple(_typed(v, d, f"{key}[{i}]") for i, (v, d) in enumerate(zip(value, default)))
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise FemError(f"{key} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise FemError(f"{key} must be a finite number, got {value!r}")
     if isinstance(default, int):
         if not float(value).is_integer():
             raise FemError(f"{key} must be an integer, got {value!r}")

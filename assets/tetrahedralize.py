@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError
+from fem.errors import FemError, excerpt
+from fem.limits import check_file_size
 from fem.mesh import check_tet_count, prepare_mesh
 
 # Bump when the output for the same input changes (tool, options, file layout),
@@ -55,6 +56,7 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
     if not (isinstance(edge_length, (int, float)) and 0 < edge_length <= 1):
         raise FemError(f"{path}: edge_length must be a fraction in (0, 1] of the bounding-box "
                        f"diagonal, got {edge_length!r}")
+    check_file_size(path)
     try:
         data = path.read_bytes()
     except OSError as error:
@@ -66,9 +68,9 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
     cached = cache_dir() / f"{key.hexdigest()}.npz"
     source = f"{path} (tetrahedralised, edge_length={edge_length})"
 
-    arrays = read_cache_entry(cached)
-    last_cache_hit = arrays is not None
-    if arrays is None:
+    mesh = (cached_mesh(cached, source) or [None])[0]
+    last_cache_hit = mesh is not None
+    if mesh is None:
         estimate = round(TETS_AT_5_PERCENT * (0.05 / edge_length) ** 3)
         check_tet_count(estimate, path, f"edge_length {edge_length} gives about {estimate:,} tets")
         start = time.perf_counter()
@@ -76,31 +78,60 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
         if progress:
             print(f"tetrahedralising {path.name} ({len(faces)} triangles) with wildmeshing, "
                   f"edge length {edge_length} x bbox diagonal ...", file=sys.stderr, flush=True)
-        arrays = _run_wildmeshing(vertices, faces, edge_length, path)
-        write_cache_entry(cached, arrays)
+        mesh = prepare_mesh(*_run_wildmeshing(vertices, faces, edge_length, path), source)
+        write_cache_entry(cached, (mesh.vertices, mesh.tets))    # only a mesh that passed the checks
         if progress:
-            print(f"  done in {time.perf_counter() - start:.1f} s: {len(arrays[1])} tets, "
-                  f"{len(arrays[0])} vertices; cached in {cached}", file=sys.stderr)
-    return prepare_mesh(*arrays, source)
+            print(f"  done in {time.perf_counter() - start:.1f} s: {len(mesh.tets)} tets, "
+                  f"{len(mesh.vertices)} vertices; cached in {cached}", file=sys.stderr)
+    return mesh
 
 
-def read_cache_entry(cached, *names):
-    """(vertices, tets, *names) from a cache file, or None when it is absent or unreadable."""
+def cached_mesh(cached, source, *names):
+    """(the checked TetMesh in a cache entry, *its arrays `names`), or None when
+    the entry is absent, damaged, altered or not a valid mesh: then it is rebuilt. An entry
+    is trusted no more than a mesh file (a vertex index of -1408 would read outside the
+    engine's fields)."""
+    arrays = read_cache_entry(cached, *names)
+    if arrays is None:
+        return None
     try:
-        with np.load(cached) as data:
-            return tuple(data[name] for name in ("vertices", "tets", *names))
-    # A damaged cache entry is rebuilt, not reported: the cache is disposable.
-    except (OSError, KeyError, ValueError):
+        return (prepare_mesh(arrays[0], arrays[1], source), *arrays[2:])
+    except FemError:
         return None
 
 
+def checksum(*arrays):
+    """sha256 of arrays' dtypes, shapes and bytes: what a cache entry must still match."""
+    digest = hashlib.sha256()
+    for array in arrays:
+        array = np.ascontiguousarray(array)
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def read_cache_entry(cached, *names):
+    """(vertices, tets, *names) from a cache file, or None when it is absent, unreadable or
+    does not match the checksum written with it."""
+    try:
+        with np.load(cached, allow_pickle=False) as data:
+            arrays = tuple(data[name] for name in ("vertices", "tets", *names))
+            stored = str(data["checksum"])
+    # A damaged cache entry is rebuilt, not reported: the cache is disposable.
+    except (OSError, KeyError, ValueError, EOFError):
+        return None
+    return arrays if stored == checksum(*arrays[:2]) else None
+
+
 def write_cache_entry(cached, arrays, **more):
-    """Write the cache entry atomically; a cache that cannot be written is only a warning."""
+    """Write the cache entry atomically, with the checksum of its vertices and tets; a cache
+    that cannot be written is only a warning."""
     try:
         cached.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=cached.parent, suffix=".tmp",
                                          delete=False) as file:
-            np.savez(file, vertices=arrays[0], tets=arrays[1], **more)
+            np.savez(file, vertices=arrays[0], tets=arrays[1], checksum=np.array(checksum(*arrays[:2])),
+                     **more)
         os.replace(file.name, cached)
     except OSError as error:
         print(f"warning: could not cache the tet mesh in {cached.parent}: {error}",
@@ -111,19 +142,36 @@ def load_surface(path):
     """(n, 3) float64 vertices and (f, 3) int32 triangles of a surface file."""
     import trimesh
 
+    check_file_size(Path(path))
     try:
         surface = trimesh.load(path, force="mesh")
-    # trimesh raises many types for unreadable files; each means "not a surface".
+    # trimesh raises many types for unreadable files; each means "not a surface". (For
+    # random bytes it may even fail to import an optional text-encoding module.)
+    except ImportError:
+        raise FemError(f"{path}: cannot read a surface (not a valid {Path(path).suffix} file)") from None
     except Exception as error:
-        raise FemError(f"{path}: cannot read a surface ({type(error).__name__}: {error})") \
-            from None
+        raise FemError(f"{path}: cannot read a surface ({type(error).__name__}: "
+                       f"{excerpt(error, 120)})") from None
     faces = np.asarray(getattr(surface, "faces", np.zeros((0, 3))))
     if faces.ndim != 2 or len(faces) == 0:
         raise FemError(f"{path}: no triangles in the file")
     vertices = np.asarray(surface.vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
         raise FemError(f"{path}: the surface has non-finite coordinates")
-    return vertices, faces.astype(np.int32)
+    faces = faces.astype(np.int32)
+    open_edges = count_open_edges(faces)
+    if open_edges:
+        raise FemError(f"{path}: the surface is not closed: {open_edges} edges have a triangle on one side "
+                       "only (a hole); only a closed surface has an inside to fill with tets")
+    return vertices, faces
+
+
+def count_open_edges(faces):
+    """How many edges of a triangle surface (f, 3) belong to exactly one triangle: 0 for a
+    closed surface."""
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, uses = np.unique(edges, axis=0, return_counts=True)
+    return int((uses == 1).sum())
 
 
 # Runs in a child process, in a temporary folder: wildmeshing prints its

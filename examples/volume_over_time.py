@@ -3,7 +3,7 @@
 Works as a script and cell by cell in a notebook (from the repository's root, or anywhere
 after `pip install .`):
 
-    python examples/volume_over_time.py cube86 --steps 100 --out volume.png
+    .venv/bin/python examples/volume_over_time.py cube86 --steps 100    # writes out/volume_cube86.png
 """
 
 import argparse
@@ -50,8 +50,11 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scene", nargs="?", default="cube86")
     parser.add_argument("--steps", type=int, default=100)
-    parser.add_argument("--out", default="volume.png")
+    parser.add_argument("--out", help="the plot's file (default out/volume_SCENE.png, beside the commands' "
+                                          "other outputs, not in the current folder)")
     args = parser.parse_args()
+    args.out = Path(args.out or f"out/volume_{Path(args.scene).stem}.png")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     matplotlib.use("Agg")
     fem.init("cpu", "f32")
     scene = load_scene(args.scene)

@@ -14,15 +14,18 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError
+from fem import limits
+from fem.errors import FemError, excerpt
 from fem.mesh import read_tet_mesh
-from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
+from fem.scene import (Body, Effects, Initial, Material, Scene, Selection, SolverSettings, check_placed,
+                       place_mesh)
 
 
 def read_coursework_scene(path):
     path = Path(path)
     if not path.is_file():
         raise FemError(f"{path}: no such scene file")
+    limits.check_file_size(path)
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as e:
@@ -39,6 +42,7 @@ def read_coursework_scene(path):
 
     n, words = next_line("the number of meshes")
     n_meshes = parse_count(words, path, n, "number of meshes")
+    limits.check_body_count(n_meshes, f"{path}:{n}")
     if n_meshes == 0:
         raise FemError(f"{path}:{n}: a scene needs at least one mesh, got 0")
     header = n
@@ -63,6 +67,7 @@ def read_coursework_scene(path):
         if not np.linalg.norm(pose[3:]) > 0:
             raise FemError(f"{path}:{n}: the rotation quaternion must be non-zero")
         placed = place_mesh(meshes[mesh_path], pose[:3], pose[3:])
+        check_placed(placed.vertices, placed.tets, f"{path}:{n}")
         pinned = np.arange(len(placed.vertices)) if fixed else np.zeros(0, np.int64)
         bodies.append(Body(f"{Path(words[0]).stem}{i}", placed, material, "corotational", pinned))
 
@@ -97,7 +102,7 @@ def read_coursework_scene(path):
 
 def parse_count(words, path, n, what):
     if len(words) != 1:
-        raise FemError(f"{path}:{n}: expected the {what} alone on the line, got {' '.join(words)!r}")
+        raise FemError(f"{path}:{n}: expected the {what} alone on the line, got {excerpt(' '.join(words))}")
     return parse_index(words[0], path, n)
 
 
@@ -105,7 +110,7 @@ def parse_index(word, path, n):
     try:
         value = int(word)
     except ValueError:
-        raise FemError(f"{path}:{n}: expected a non-negative integer, got {word!r}") from None
+        raise FemError(f"{path}:{n}: expected a non-negative integer, got {excerpt(word)}") from None
     if value < 0:
         raise FemError(f"{path}:{n}: expected a non-negative integer, got {value}")
     return value
@@ -116,7 +121,7 @@ def parse_numbers(words, path, n):
         values = [float(w) for w in words]
     except ValueError:
         bad = next(w for w in words if not is_float(w))
-        raise FemError(f"{path}:{n}: expected a number, got {bad!r}") from None
+        raise FemError(f"{path}:{n}: expected a number, got {excerpt(bad)}") from None
     if not np.all(np.isfinite(values)):
         raise FemError(f"{path}:{n}: numbers must be finite, got {' '.join(words)}")
     return values

@@ -13,6 +13,14 @@ class FemError(Exception):
     """
 
 
+def excerpt(text, limit=60):
+    """A short, printable quotation of user text for a message: control characters escaped,
+    at most `limit` characters (a line of a system file, a 10 kB --set value)."""
+    text = str(text)
+    shown = text[:limit].encode("unicode_escape").decode("ascii")
+    return repr(shown + ("..." if len(text) > limit else ""))
+
+
 class SizeLimitError(FemError):
     """A mesh larger than `fem.mesh.MAX_TETS`: probably a typo in a resolution, which would
     exhaust the memory. The command line adds how to lift the limit (--allow-large)."""

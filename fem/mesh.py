@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError, SizeLimitError
+from fem.errors import FemError, SizeLimitError, excerpt
 
 
 @dataclass
@@ -208,6 +208,8 @@ def read_tet_mesh(path):
         raise FemError(f"{path}: unknown tet mesh extension {path.suffix!r} (known: {known})")
     if not path.is_file():
         raise FemError(f"{path}: no such file")
+    from fem.limits import check_file_size
+    check_file_size(path)
     if suffix == ".mesh":
         return _read_medit(path)
     return _read_with_meshio(path)
@@ -252,7 +254,7 @@ def _read_with_meshio(path):
     # meshio raises many types for bad files (ReadError, ValueError,
     # IndexError, struct.error, ...); each one means "this file is unusable".
     except Exception as error:
-        detail = str(error) or f"not a valid {path.suffix} file"
+        detail = excerpt(str(error), 120) if str(error) else f"'not a valid {path.suffix} file'"
         raise FemError(f"{path}: cannot read ({type(error).__name__}: {detail})") from None
     blocks = [block.data for block in data.cells if block.type == "tetra"]
     if not blocks:
@@ -295,7 +297,7 @@ def _read_medit(path):
             value_line, value_tokens = lines[keyword_at + 1]
             value, after = value_tokens[0], keyword_at + 2
         else:
-            raise FemError(f"{name}:{number}: the file ends after {tokens[0]!r}, "
+            raise FemError(f"{name}:{number}: the file ends after {excerpt(tokens[0])}, "
                            f"expected a count")
         try:
             count = int(value)
@@ -303,7 +305,7 @@ def _read_medit(path):
             count = -1
         if count < 0:
             raise FemError(f"{name}:{value_line}: {tokens[0]} count must be a "
-                           f"non-negative integer, got {value!r}")
+                           f"non-negative integer, got {excerpt(value)}")
         return count, after
 
     def read_rows(keyword_at, what, width, convert):
@@ -322,7 +324,7 @@ def _read_medit(path):
             except ValueError as error:
                 if _is_keyword(tokens[0]):
                     raise FemError(f"{name}:{number}: {keyword} says {count} {whats} but "
-                                   f"{tokens[0]!r} starts after {k}") from None
+                                   f"{excerpt(tokens[0])} starts after {k}") from None
                 raise FemError(f"{name}:{number}: {what} {k} {error}") from None
             if len(values) < width:
                 raise FemError(f"{name}:{number}: {what} {k} has {len(values)} "
@@ -336,7 +338,7 @@ def _read_medit(path):
         keyword = tokens[0].lower()
         if not _is_keyword(tokens[0]):
             raise FemError(f"{name}:{number}: expected a keyword such as 'Vertices', got "
-                           f"{' '.join(tokens)!r} (does the count of the section "
+                           f"{excerpt(' '.join(tokens))} (does the count of the section "
                            f"above match its rows?)")
         if keyword == "end":
             break
@@ -389,9 +391,9 @@ def _finite_float(token):
     try:
         value = float(token)
     except ValueError:
-        raise ValueError(f"has a non-numeric coordinate {token!r}") from None
+        raise ValueError(f"has a non-numeric coordinate {excerpt(token)}") from None
     if not np.isfinite(value):
-        raise ValueError(f"has a non-finite coordinate {token!r}")
+        raise ValueError(f"has a non-finite coordinate {excerpt(token)}")
     return value
 
 
@@ -399,7 +401,7 @@ def _index(token):
     try:
         value = int(token)
     except ValueError:
-        raise ValueError(f"has a vertex index {token!r} that is not an integer") from None
+        raise ValueError(f"has a vertex index {excerpt(token)} that is not an integer") from None
     # int32 is the engine's index type; the bound also keeps numpy from overflowing.
     if not 0 <= value < 2**31:
         raise ValueError(f"has an out-of-range vertex index {value}")

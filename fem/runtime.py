@@ -3,6 +3,8 @@
 import contextlib
 import functools
 import io
+import os
+import sys
 import textwrap
 import types
 
@@ -40,8 +42,9 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
     remember_sources()
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
+    ignore_taichi_arch_variable(arch)
     # Taichi prints a banner on stdout; keep stdout for our own output
-    with contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stdout(io.StringIO()), taichi_variables_reported():
         ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug,
                 offline_cache=True, offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR)
     backend = ti.lang.impl.current_cfg().arch.name
@@ -49,6 +52,30 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
     _current.update(arch=backend, precision=precision, settings=settings, runtime=ti.lang.impl.get_runtime())
     return backend
+
+
+def ignore_taichi_arch_variable(arch):
+    """Taichi's TI_ARCH would override the `arch` asked for here (TI_ARCH=opengl on a machine
+    without OpenGL ends the process with a segfault; TI_ARCH=xyz aborts it): the argument
+    wins, and the variable is dropped with a warning."""
+    value = os.environ.pop("TI_ARCH", None)
+    if value is not None:
+        print(f"warning: environment variable TI_ARCH={value[:40]!r} ignored: the backend is the "
+              f"arch asked for ({arch!r})", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def taichi_variables_reported():
+    """A TI_* environment variable Taichi cannot use (TI_DEBUG=yes) is a FemError naming the
+    variables set, not Taichi's traceback."""
+    try:
+        yield
+    except (ValueError, KeyError, TypeError) as error:
+        names = sorted(name for name in os.environ if name.startswith("TI_"))
+        if not names:
+            raise
+        raise FemError(f"Taichi cannot start with the environment variables {', '.join(names)} "
+                       f"({type(error).__name__}: {str(error)[:100]}); unset them") from None
 
 
 def brief_source_positions(on=True):

@@ -10,8 +10,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from fem import limits
 from fem.errors import FemError
-from fem.mesh import TetMesh, signed_volumes
+from fem.mesh import VOLUME_TOLERANCE, TetMesh, signed_volumes
 
 # "corotational-naive" is the tempting but wrong f = -R Ke R^T (x - X): a teaching switch
 # (docs/method.md), forces under a pure rotation; it always takes the one-solve step.
@@ -39,12 +40,13 @@ class Material:
         return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
 
     def check(self, where):
-        if not self.E > 0:
-            raise FemError(f"{where}: E must be > 0, got {self.E}")
+        if not 0 < self.E <= limits.MAX_YOUNG_MODULUS:
+            raise FemError(f"{where}: E must be > 0 and at most {limits.MAX_YOUNG_MODULUS:g} Pa, got {self.E}")
         if not -1.0 < self.nu < 0.5:
             raise FemError(f"{where}: nu must be in (-1, 0.5), got {self.nu}")
-        if not self.density > 0:
-            raise FemError(f"{where}: density must be > 0, got {self.density}")
+        if not 0 < self.density <= limits.MAX_DENSITY:
+            raise FemError(f"{where}: density must be > 0 and at most {limits.MAX_DENSITY:g} kg/m^3, "
+                           f"got {self.density}")
 
 
 @dataclass
@@ -124,6 +126,7 @@ class SolverSettings:
     def check(self, where):
         if not self.dt > 0:
             raise FemError(f"{where}: dt must be > 0, got {self.dt}")
+        limits.check_range(self.dt, *limits.DT_RANGE, f"{where}: dt", " s")
         if self.step not in STEPS:
             raise FemError(f"{where}: step must be one of {STEPS}, got {self.step!r}")
         if self.integrator not in INTEGRATORS:
@@ -250,3 +253,18 @@ def select_vertices(sel, bodies, where):
     if not picks:
         raise FemError(f"{where}: the region selects no vertex")
     return picks
+
+
+def check_placed(vertices, tets, where):
+    """FemError when a placed mesh is too far away (fem.limits.MAX_COORDINATE), or so far for
+    its size that its tets lose their volume in float64 (a body 1 m across placed at 1e16 m).
+    (Here, beside place_mesh, not in fem.limits: it needs fem.mesh, which imports fem.limits.)"""
+    farthest = float(np.abs(vertices).max())
+    if not farthest <= limits.MAX_COORDINATE:
+        raise FemError(f"{where}: a vertex is placed {farthest:.3g} m from the origin, "
+                       f"more than {limits.MAX_COORDINATE:g} m (check position and scale)")
+    side = float(np.ptp(vertices, axis=0).max())
+    volumes = np.abs(signed_volumes(vertices, tets))
+    if not side > 0 or not (volumes > VOLUME_TOLERANCE * side**3).all():
+        raise FemError(f"{where}: placed at this position and scale, tets lose their volume in "
+                       f"floating point (body {side:.3g} m across, {farthest:.3g} m from the origin)")

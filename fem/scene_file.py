@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from fem import limits
 from fem.errors import FemError
 from fem.scene import (METHODS, Body, Effects, Impulse, Initial, Material, Scene, Selection,
-                       SolverSettings, axis_angle_quaternion, place_mesh, select_vertices)
+                       SolverSettings, axis_angle_quaternion, check_placed, place_mesh, select_vertices)
 
 
 class Table:
@@ -65,10 +66,14 @@ def check_type(value, kind, where):
             fail("a number")
         if not np.isfinite(value):
             fail("a finite number")
+        if not abs(value) <= limits.MAX_MAGNITUDE:
+            fail(f"a number no larger than {limits.MAX_MAGNITUDE:g}")
         return float(value)
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
             fail("an integer")
+        if not abs(value) <= limits.MAX_INTEGER:
+            fail(f"an integer no larger than {limits.MAX_INTEGER}")
         return value
     if kind == "str":
         return value if isinstance(value, str) else fail("a string")
@@ -93,13 +98,18 @@ def read_toml_data(path):
     path = Path(path)
     if not path.is_file():
         raise FemError(f"{path}: no such scene file")
+    limits.check_file_size(path)
     try:
         with open(path, "rb") as f:
-            return tomllib.load(f)
+            data = tomllib.load(f)
     except tomllib.TOMLDecodeError as e:
         raise FemError(f"{path}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise FemError(f"{path}: tables or lists nested too deeply") from None
     except (OSError, UnicodeDecodeError) as e:
         raise FemError(f"{path}: cannot read: {e}") from None
+    limits.check_nesting(data, path)
+    return data
 
 
 def read_toml_scene(path, build_mesh, data=None):
@@ -118,7 +128,12 @@ def read_toml_scene(path, build_mesh, data=None):
     bodies_raw = data.get("body")
     if not isinstance(bodies_raw, list) or not bodies_raw:
         raise FemError(f"{path}: a scene needs at least one [[body]] table")
-    bodies = [read_body(b, i, path, build_mesh) for i, b in enumerate(bodies_raw)]
+    limits.check_body_count(len(bodies_raw), path)
+    bodies, tets = [], 0
+    for i, raw in enumerate(bodies_raw):             # the total checked before the next mesh is made
+        bodies.append(read_body(raw, i, path, build_mesh))
+        tets += len(bodies[-1].mesh.tets)
+        limits.check_scene_tets(tets, path)
     names = [b.name for b in bodies]
     if len(set(names)) != len(names):
         raise FemError(f"{path}: body names must be unique, got {names}")
@@ -173,6 +188,7 @@ def read_body(raw, index, path, build_mesh):
     if not scale > 0:
         raise FemError(f"{where}.scale: must be > 0, got {scale}")
     placed = place_mesh(mesh, t.get("position", "vec3", (0, 0, 0)), rotation, scale)
+    check_placed(placed.vertices, placed.tets, where)
     body = Body(name, placed, material, method)
     if t.get("fixed", "bool", False):
         body.pinned = np.arange(len(placed.vertices))

@@ -12,7 +12,8 @@ from pathlib import Path
 
 from assets import MESH_FILE_SUFFIXES, build_mesh, mesh_file_scene
 from fem.coursework import read_coursework_scene
-from fem.errors import FemError
+from fem import limits
+from fem.errors import FemError, excerpt
 from fem.scene_file import read_toml_data, read_toml_scene
 
 SCENES_DIR = Path(__file__).resolve().parent
@@ -87,7 +88,7 @@ def read_with_overrides(path, data, overrides):
                 if message.startswith("--set "):
                     raise
                 scene = f"built-in scene {path.stem}" if path.parent == SCENES_DIR else f"scene {path}"
-                raise type(culprit)(f"--set {overrides[count - 1]}: {message} ({scene})") from None
+                raise type(culprit)(f"--set {shortened(overrides[count - 1])}: {message} ({scene})") from None
         raise
 
 
@@ -99,11 +100,17 @@ def apply_override(data, text):
     """
     key, sep, raw = text.partition("=")
     if not sep or not key.strip():
-        raise FemError(f"--set {text!r}: expected KEY=VALUE, e.g. solver.dt=0.01")
+        raise FemError(f"--set {excerpt(text)}: expected KEY=VALUE, e.g. solver.dt=0.01")
     try:
         value = tomllib.loads(f"v = {raw.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw.strip()
+    except RecursionError:
+        value = None
+    if value is None or limits.nesting_depth(value) > limits.MAX_NESTING:
+        raise FemError(f"--set {excerpt(text)}: tables or lists nested more than {limits.MAX_NESTING} deep")
+    if key.count(".") > limits.MAX_NESTING:
+        raise FemError(f"--set {excerpt(text)}: a key more than {limits.MAX_NESTING} levels deep")
     node, parts = data, key.strip().split(".")
     for i, part in enumerate(parts[:-1]):
         if isinstance(node, list) and part == "*":   # every entry: body.*.scale=2
@@ -129,3 +136,8 @@ def apply_override(data, text):
     elif parts[-1] in ("file", "surface") and isinstance(value, str) and value:
         value = str(Path(value).expanduser().absolute())
     node[parts[-1]] = value
+
+
+def shortened(text, limit=80):
+    """A --set text as messages quote it: whole when short, else its start."""
+    return text if len(text) <= limit else text[:limit] + "..."

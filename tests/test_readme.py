@@ -146,3 +146,13 @@ def test_python_example_runs(clone, monkeypatch, readme):
             exec(compile(code, str(readme), "exec"), {})
         assert "(" in out.getvalue()      # it prints the volume ratios and the positions' shape
     fem.init("cpu", "f32")
+
+
+def test_one_form_of_the_command_throughout():
+    """Copied as written, `python main.py` runs the system's Python, without Taichi: every page
+    writes the command as the README's first lines do (.venv/bin/python main.py, or softfem)."""
+    bare = re.compile(r"(?<![/\w.])python3? main\.py")
+    pages = READMES + sorted((ROOT / "docs").glob("*.md"))
+    found = [f"{page.relative_to(ROOT)}:{n}" for page in pages
+             for n, line in enumerate(page.read_text().splitlines(), 1) if bare.search(line)]
+    assert found == []

@@ -206,7 +206,7 @@ def wait_for(condition, timeout, what):
 
 def frames_after_event(folder, kind):
     """Complete stats rows streamed after the first event of `kind` (0 before it)."""
-    rows = [json.loads(line) for part in folder.glob(".s.jsonl.*.part")
+    rows = [json.loads(line) for part in folder.glob("s.jsonl")
             for line in part.read_text().splitlines(keepends=True) if line.endswith("\n")]
     frames = [row["frame"] for row in rows if any(e["type"] == kind for e in row["events"])]
     return sum(row["frame"] > frames[0] for row in rows) if frames else 0
@@ -250,8 +250,8 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
                               cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
         wid = xdotool(env, "search", "--sync", "--onlyvisible", "--name", "softfem").split()[0]
-        # The stats file streams into a temporary name until the window closes.
-        wait_for(lambda: any(p.stat().st_size > 0 for p in tmp_path.glob(".s.jsonl.*.part")),
+        # The stats file streams rows as the frames come (`tail -f` follows it).
+        wait_for(lambda: stats.exists() and stats.stat().st_size > 0,
                  60, "the first frames of the loaded scene")
         xdotool(env, "mousemove", "--window", wid, str(target[0]), str(target[1]), "click", "1")
         wait_for(lambda: frames_after_event(tmp_path, "click") >= 10, 60, "frames after the click")

@@ -124,8 +124,8 @@ def _first_frames(scene_name, env, timeout):
             while len(seen) < 2 and time.perf_counter() - start < timeout:
                 if window.poll() is not None:
                     return None
-                # the rows stream into a temporary file (app/files.py) until the window closes
-                rows = sum(part.read_text().count("\n") for part in Path(folder).glob(".view.jsonl.*.part"))
+                # the window writes its rows straight into the stats file, as they come
+                rows = stats.read_text().count("\n") if stats.exists() else 0
                 seen += [time.perf_counter() - start] * (min(rows, 2) - len(seen))
                 time.sleep(0.005)
         finally:

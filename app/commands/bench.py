@@ -8,7 +8,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from app import device
+from app import device, outputs
 from app.bench import startup
 from app.bench.conclusions import headline
 from app.bench.measure import STIFF, compare_preconditioners, machine, measure_scene, stiff_bar
@@ -24,6 +24,7 @@ def destination(args):
     it replaces (they are under version control) and which only the full plan may write."""
     if not args.docs:
         refuse_overwrite(args.out, args.overwrite)
+        outputs.remove_stale_temporaries(args.out)     # what a killed run left
         return Path(args.out), RESULT_FILES
     if args.quick or args.scenes:
         raise FemError(f"--docs records the full benchmark; drop {'--quick' if args.quick else '--scenes'}")

@@ -22,8 +22,12 @@ Videos play at real time: the frame rate is the simulated time between frames
 
 Nothing is lost: a non-empty --out folder or an existing --video file is
 refused without --overwrite, and every file is written under a temporary
-name and renamed when complete. An interrupted export (Ctrl-C, SIGTERM) keeps
-the frames written so far and closes the video on them, and says so.
+name and renamed when complete. --overwrite replaces frame_00000.png ..
+frame_{N-1}.png and the video; nothing else in the folder is touched (older
+frames numbered N and above are left, and the summary says so). A folder
+another export is writing into is refused. An interrupted export (Ctrl-C,
+SIGTERM) or one stopped by a full disk keeps the frames written so far and
+closes the video on them, and says so.
 """
 
 import contextlib
@@ -43,7 +47,8 @@ from PIL import Image, ImageDraw, ImageFont
 import fem
 import scenes
 from app import EXIT_INTERRUPTED, device
-from app.commands.simulate import check_rejected
+from app import outputs
+from app.commands.simulate import Tally, check_rejected
 from app.files import atomic_open, atomic_path, interrupts_deferred, refuse_overwrite
 from app.progress import Progress
 from app.render.camera import Camera, auto_frame
@@ -60,6 +65,9 @@ MACRO_BLOCK = 16
 # Frames larger than this a side are refused unless --allow-large: 8K video is 7680 wide,
 # and a 100000 x 100000 frame (30 GB) is a typo.
 MAX_SIDE = 8192
+# More time steps between two frames than this is a slip in --speed or --fps (1e300, 1e-9):
+# each frame would take hours. --steps-per-frame asks for any number explicitly.
+MAX_STEPS_PER_FRAME = 10_000
 # Frame rate aimed at when choosing the steps per frame; the video's own rate then
 # makes it play at the requested speed.
 TARGET_FPS = 30.0
@@ -110,10 +118,18 @@ def run(args) -> int:
     view = View(sim, scene, args.compare, args.color, args.renderer, width, height)
 
     out.mkdir(parents=True, exist_ok=True)
+    with outputs.FolderLock(out):
+        outputs.remove_stale_temporaries(out)
+        refuse_overwrite(out, args.overwrite)      # again: another run may have written meanwhile
+        return write_frames(args, sim, scene, view, out, video, steps, fps)
+
+
+def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
+    """Step, render and write every frame (and the video) into the locked folder out."""
     timings = {"step": [], "simulation": [], "rendering": [], "writing": []}
-    steps_run = []
+    steps_run = Tally()
     written = 0                 # complete PNG files
-    writer = VideoWriter(video, fps)
+    writer = VideoWriter(video, fps, args.overwrite)
     try:
         with writer, Progress(args.frames, "frame", scene.name) as progress:
             for index in range(args.frames):
@@ -127,7 +143,8 @@ def run(args) -> int:
                 rendered = time.perf_counter()
 
                 lines = view.caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
-                write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines))
+                write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines),
+                          f"kept the {index} complete frames before it")
                 written = index + 1
                 if writer.active:
                     speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
@@ -141,17 +158,20 @@ def run(args) -> int:
         kept = (f"kept the {written} complete frames {out / FRAME_NAME.format(0)} .. "
                 f"{FRAME_NAME.format(written - 1)}" if written else "no frame was complete")
         also = f" and {video} with {writer.frames} frames" if writer.active and writer.frames else ""
-        print(f"interrupted at frame {written} of {args.frames}: {kept}{also}", file=sys.stderr)
+        older = older_frames(out, written)
+        earlier = f"; {older[0]} .. {older[-1]} are older, not from this export" if older else ""
+        print(f"interrupted at frame {written} of {args.frames}: {kept}{also}{earlier}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if args.overwrite:
-        remove_stale_frames(out, args.frames)
-
     print(summary(timings, steps, view.renderer.name))
     if video is not None:
         print(f"the video plays at {fps:.4g} frames per second: "
               f"{fps * steps * sim.settings.dt:.3g}x real time")
     where = f"{out / FRAME_NAME.format(0)} .. {FRAME_NAME.format(args.frames - 1)}"
     print(f"wrote {args.frames} frames {where}" + (f" and {video}" if video else ""))
+    older = older_frames(out, args.frames)
+    if older:
+        print(f"note: {out} also holds {len(older)} older frames ({older[0]} ..), not from this export; "
+              "they were left as they were", file=sys.stderr)
     return check_rejected(steps_run, sim.settings.dt)
 
 
@@ -228,12 +248,22 @@ def check_arguments(args, out: Path, video: Path | None):
         raise fem.FemError(f"--out {out}: is a file, not a folder")
     if video is not None and video.suffix.lower() not in VIDEO_SUFFIXES:
         raise fem.FemError(f"--video {video}: use a .mp4 (H.264) or .gif file name")
+    if video is not None and outputs.is_special(video):
+        raise fem.FemError(f"--video {video}: not a regular file (a device or a pipe); give a file name")
 
 
 def steps_per_frame(requested: int | None, fps: float, speed: float, dt: float) -> int:
     """Time steps between frames: as requested, else the number that shows `speed` seconds
-    of simulated time per second of video at about fps frames per second (at least 1)."""
-    return requested if requested is not None else max(1, round(speed / (fps * dt)))
+    of simulated time per second of video at about fps frames per second (at least 1), at most
+    MAX_STEPS_PER_FRAME."""
+    if requested is not None:
+        return requested
+    steps = speed / (fps * dt)
+    if not steps <= MAX_STEPS_PER_FRAME:
+        raise fem.FemError(f"--speed {speed:g} at {fps:g} frames per second and dt {dt:g} s needs {steps:.3g} "
+                           f"steps per frame, more than {MAX_STEPS_PER_FRAME:,}: lower --speed, raise --fps, "
+                           "or give --steps-per-frame")
+    return max(1, round(steps))
 
 
 def video_rate(steps: int, dt: float, speed: float) -> float:
@@ -333,19 +363,22 @@ def timing_line(step_ms: list[float], render_ms: float, renderer: str) -> str:
 
 # ---------------------------------------------------------------- files
 
-def write_png(path: Path, image: np.ndarray):
-    """Save image (H, W, 3) uint8 as a PNG, under a temporary name until it is complete."""
-    with atomic_open(path, "wb") as f:
-        Image.fromarray(image).save(f, format="PNG")
+def write_png(path: Path, image: np.ndarray, kept: str = ""):
+    """Save image (H, W, 3) uint8 as a PNG, under a temporary name until it is complete;
+    a full disk is a FemError naming the frame and what was `kept`."""
+    try:
+        with atomic_open(path, "wb") as f:
+            Image.fromarray(image).save(f, format="PNG")
+    except fem.FemError as error:
+        raise fem.FemError(f"{error}; {kept}" if kept else str(error)) from None
 
 
-def remove_stale_frames(folder: Path, count: int):
-    """Delete frames numbered count and above, left by an earlier, longer export, so
-    that the folder holds one export's frames only."""
-    for path in folder.iterdir():
-        match = FRAME_PATTERN.fullmatch(path.name)
-        if match and int(match[1]) >= count:
-            path.unlink()
+def older_frames(folder: Path, count: int) -> list[str]:
+    """Names of the frames numbered count and above in folder (an earlier, longer export's,
+    or the user's own): --overwrite leaves them, and the summary says so."""
+    names = [path.name for path in folder.iterdir() if (match := FRAME_PATTERN.fullmatch(path.name))
+             and int(match[1]) >= count]
+    return sorted(names)
 
 
 class VideoWriter:
@@ -354,8 +387,8 @@ class VideoWriter:
     after some frames, renames it into place; any other exception removes it.
     With path None it does nothing (active is False)."""
 
-    def __init__(self, path: Path | None, fps: float):
-        self.path, self.fps = path, fps
+    def __init__(self, path: Path | None, fps: float, overwrite: bool = True):
+        self.path, self.fps, self.overwrite = path, fps, overwrite
         self.active = path is not None
         self.temporary = atomic_path(path) if self.active else None
         self.writer = None
@@ -388,12 +421,12 @@ class VideoWriter:
         if not self.active:
             return False
         # Interrupted, the video keeps the frames it has, as the PNGs do.
-        keep = kind is None or (issubclass(kind, KeyboardInterrupt) and self.frames > 0)
+        keep = kind is None or (issubclass(kind, (KeyboardInterrupt, fem.FemError)) and self.frames > 0)
         try:
             if keep:
                 with interrupts_deferred():
                     self.writer.close()
-                    os.replace(self.temporary, self.path)
+                    outputs.put_in_place(self.temporary, self.path, self.overwrite)
             else:
                 with contextlib.suppress(Exception):   # a half-written video is discarded anyway
                     self.writer.close()

@@ -3,9 +3,9 @@
 import sys
 
 import fem
-from app import EXIT_INTERRUPTED, device
+from app import EXIT_INTERRUPTED, device, outputs
 from app.display import display_problem
-from app.files import atomic_open, refuse_overwrite
+from app.files import refuse_overwrite
 from app.window.viewer import Viewer
 
 
@@ -19,7 +19,7 @@ def run(args) -> int:
     viewer = Viewer(args, width, height)
     try:
         if to_file:
-            with atomic_open(args.stats, keep_if_interrupted=True) as stats_file:
+            with outputs.open_stream(args.stats, args.overwrite) as stats_file:
                 viewer.loop(stats_file)
         else:
             viewer.loop(sys.stdout if args.stats == "-" else None)

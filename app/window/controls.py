@@ -130,5 +130,5 @@ class Controls:
             event["twin_body"] = twin
         self.sim.apply_impulse(ids, dv)
         self.events.append(event)
-        self.marker = (hit.point, np.asarray(delta_v))
+        self.marker = (hit.point, np.asarray(delta_v), "tip")
         self.marker_until = time.perf_counter() + MARKER_SECONDS

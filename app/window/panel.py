@@ -1,6 +1,7 @@
 """The window's side panel and help: a part of `Viewer` (app/window/viewer.py), whose attributes
 it reads and sets through the panel's buttons, checkboxes and sliders."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,7 @@ class Panel:
                f"residual {residual if residual is not None else float('nan'):.1e}"
                + ("" if s.get("converged", True) else "  NOT CONVERGED"))
         for body, ratio in zip(self.sim.model.bodies, s["volume_ratio"]):
-            g.text(f"volume {100 * ratio:6.1f} %  {body.name}")
+            g.text(f"volume {100 * ratio:6.1f} %  {shown_name(body, self.twins)}")
         g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
         g.text(f"inverted tets: {s['inverted_tets']}")
 
@@ -66,7 +67,7 @@ class Panel:
         if g.checkbox("corotational (all bodies)", all_corotational) != all_corotational:
             self.toggle_corotation()
             return
-        wanted = ["corotational" if g.checkbox(f"{i}: {b.name}", m == "corotational") else "linear"
+        wanted = ["corotational" if g.checkbox(f"{i}: {shown_name(b, self.twins)}", m == "corotational") else "linear"
                   for i, (b, m) in enumerate(zip(self.sim.model.bodies, methods))]
         if wanted != methods:
             self.set_methods(wanted)
@@ -137,3 +138,11 @@ class Panel:
         with self.gui.sub_window("help (h to close)", 0.05, 0.1, 0.6, 0.045 * len(lines) + 0.06) as g:
             for line in lines:
                 g.text(line)
+
+
+def shown_name(body, twins):
+    """A body's name in the panel; in compare mode with its method now, not the one it began with."""
+    if not twins:
+        return body.name
+    base = re.sub(r" \((linear|corotational)\)$", "", body.name)
+    return f"{base} ({body.method})"

@@ -21,6 +21,7 @@ import taichi as ti
 
 import fem
 import scenes
+from app import outputs
 from app.files import atomic_open, atomic_path, numbered_path
 from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
@@ -91,6 +92,7 @@ class Viewer(Controls, Panel):
                              integrator=args.integrator)
         self.warm_up_due = True          # after the scene's first frame is shown (loop)
         self.sim, self.ref = sim, ref
+        self.scene_methods = self.methods()        # what `r` restores
         model = sim.model
         self.body_starts = np.array([b.vertices.start for b in model.bodies])
         self.twins = len(model.bodies) // 2 if args.compare else 0
@@ -169,8 +171,11 @@ class Viewer(Controls, Panel):
     # ------------------------------------------------------------ actions
 
     def reset(self):
+        """Start the scene again, with each body's own method (as loaded), whatever `c` changed."""
         self.sim.reset()
         self.events.append({"type": "reset"})
+        if self.methods() != self.scene_methods:
+            self.set_methods(self.scene_methods)
 
     def toggle_corotation(self):
         """Every body corotational, or (when they all are already) every body linear."""
@@ -208,7 +213,7 @@ class Viewer(Controls, Panel):
         if self.video is None:
             return
         self.video.close()
-        atomic_path(self.video_path).replace(self.video_path)
+        outputs.put_in_place(atomic_path(self.video_path), self.video_path, overwrite=False)
         self.message = f"saved {self.video_path}"
         print(self.message, file=sys.stderr)
         self.events.append({"type": "video", "recording": False, "path": str(self.video_path)})
@@ -265,8 +270,11 @@ class Viewer(Controls, Panel):
         """In compare mode, "linear" and "corotational" at the top of the view, over where the
         copies start. (GGUI places a sub-window once and then leaves it where it is, so the
         labels cannot follow the copies; at the top, a growing copy does not cover them.)"""
-        for label, x in self.labels:
-            with self.gui.sub_window(label, x - LABEL_SIZE[0] / 2, 0.01, *LABEL_SIZE) as g:
+        if not self.twins:
+            return
+        for label, x in zip(copy_methods(self.methods(), self.twins), (x for _, x in self.labels)):
+            # ImGui shows the title up to "##"; what follows keeps the two windows apart.
+            with self.gui.sub_window(f"{label}##{x:.3f}", x - LABEL_SIZE[0] / 2, 0.01, *LABEL_SIZE) as g:
                 g.text("")
 
     def draw_marker(self):
@@ -278,16 +286,17 @@ class Viewer(Controls, Panel):
                 right, true_up, _ = self.camera.basis()
                 direction = drag[0] * right - drag[1] * true_up
                 strength = self.strength * min(np.linalg.norm(drag) / (0.2 * self.height), 4.0)
-                self.marker = (self.press.hit.point, strength * direction / np.linalg.norm(direction))
+                # From the hit point towards the mouse, as the push will go.
+                self.marker = (self.press.hit.point, strength * direction / np.linalg.norm(direction), "tail")
                 self.marker_until = time.perf_counter() + MARKER_SECONDS
         if self.marker is None or time.perf_counter() > self.marker_until:
             return False
-        point, delta_v = self.marker
+        point, delta_v, end = self.marker
         self.marker_point.from_numpy(point[None].astype(np.float32))
         self.scene3d.particles(self.marker_point, radius=0.025 * self.size, color=MARKER_COLOR)
         # The arrow as a row of beads: GGUI's lines are one pixel wide on some drivers.
         self.marker_arrow.from_numpy(arrow_beads(point, delta_v, 0.4 * self.size / max(self.strength, 1e-9),
-                                                 self.marker_arrow.shape[0]).astype(np.float32))
+                                                 self.marker_arrow.shape[0], end).astype(np.float32))
         self.scene3d.particles(self.marker_arrow, radius=0.012 * self.size, color=MARKER_COLOR)
         return True
 
@@ -355,9 +364,21 @@ def warm_up(sim):
     sim.reset()
 
 
-def arrow_beads(point, delta_v, metres_per_mps, count):
-    """count points (count, 3) from the arrow's tail to its tip at `point`: an arrow
-    along delta_v, the way the push goes, |delta_v| * metres_per_mps long."""
+def arrow_beads(point, delta_v, metres_per_mps, count, end="tip"):
+    """count points (count, 3) from the arrow's tail to its tip: an arrow along delta_v, the
+    way the push goes, |delta_v| * metres_per_mps long, with its tip at `point` (end "tip": a
+    click, pushing into the body) or its tail there (end "tail": a drag, towards the mouse)."""
     length = np.linalg.norm(delta_v) * metres_per_mps
     direction = delta_v / max(np.linalg.norm(delta_v), 1e-12)
-    return point - length * np.linspace(1.0, 0.0, count)[:, None] * direction
+    tail = point - length * direction if end == "tip" else point
+    return tail + length * np.linspace(0.0, 1.0, count)[:, None] * direction
+
+
+def copy_methods(methods, twins):
+    """The labels of the two copies of --compare as their bodies' methods are now, e.g.
+    ["linear", "corotational"], or ["linear", "linear"] after `c` made every body linear."""
+    def label(copy):
+        return copy[0] if len(set(copy)) == 1 else "mixed"
+
+    return [label(methods[:twins]), label(methods[twins:])]
+

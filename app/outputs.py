@@ -1,0 +1,179 @@
+"""What can go wrong while writing outputs, and how a run keeps the user's data anyway.
+
+- A special file (a device such as /dev/null, a FIFO) given as an output is written to
+  as a stream, like `-`, and never replaced by a regular file.
+- Temporary files carry the writing process's id (`.NAME.PID.xxxx.part`), so two runs
+  never share one, and a later run can tell the leftovers of a killed run (SIGKILL: no
+  clean-up) from those of a run still going, and remove them.
+- Without --overwrite a finished file is put in place only if nothing took its name in
+  the meantime (a hard link cannot replace a file, a rename can): a run never claims a
+  file another run wrote.
+- A folder a run writes into is locked (flock on the folder itself), so a second run
+  into the same folder is refused instead of mixing its files with the first one's.
+- A full disk ends the run with one line naming the file and what was kept.
+"""
+
+import errno
+import fcntl
+import os
+import re
+import stat
+from pathlib import Path
+
+from fem.errors import FemError
+
+# What writing a file can fail with, whatever is written: a full disk, a quota, a file
+# too large for the file system, an I/O error, a file system gone read-only.
+WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS)
+# .NAME.PID.part, .NAME.PID.xxxxxxxx.part or .STEM.PID.part.SUFFIX: app.files' temporary names.
+TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)(\.[A-Za-z0-9_]+)?\.part(\.\w+)?")
+
+
+def is_special(path) -> bool:
+    """True for an existing path that is neither a regular file nor a folder (a character or
+    block device, a FIFO, a socket): such a path is written as a stream, never replaced."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
+def temporary_prefix(path: Path) -> str:
+    """The start of this process's temporary names for `path`: '.NAME.PID.'"""
+    return f".{path.name}.{os.getpid()}."
+
+
+def process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:       # someone else's process: alive
+        return True
+    return True
+
+
+def stale_temporaries(folder, name=None):
+    """The temporary files in `folder` (of output `name` only, if given) whose writer is gone."""
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return []
+    stale = []
+    for path in entries:
+        match = TEMPORARY.fullmatch(path.name)
+        if match and (name is None or match["name"] == name) and not process_alive(int(match["pid"])):
+            stale.append(path)
+    return stale
+
+
+def remove_stale_temporaries(folder, name=None) -> int:
+    """Delete what killed runs left in `folder` (a SIGKILL leaves no chance to clean up);
+    returns how many files went."""
+    removed = 0
+    for path in stale_temporaries(folder, name):
+        try:
+            path.unlink()
+            removed += 1
+        except OSError:
+            pass
+    return removed
+
+
+def holds_user_files(folder) -> bool:
+    """True when `folder` has anything in it besides killed runs' temporary files."""
+    stale = set(stale_temporaries(folder))
+    return any(path not in stale for path in Path(folder).iterdir())
+
+
+def put_in_place(temporary, path, overwrite: bool):
+    """Rename the finished `temporary` to `path`. Without overwrite, a file that appeared at
+    `path` while this run was writing (another run) is kept, and this run's output goes to
+    the first free numbered name beside it, which the FemError names."""
+    temporary, path = Path(temporary), Path(path)
+    if overwrite:
+        os.replace(temporary, path)
+        return
+    try:
+        os.link(temporary, path)              # fails if path exists: never replaces
+        os.unlink(temporary)
+        return
+    except FileExistsError:
+        pass
+    except OSError:                           # no hard links here (e.g. FAT): check, then rename
+        if not os.path.lexists(path):
+            os.replace(temporary, path)
+            return
+    kept = free_name(path)
+    os.replace(temporary, kept)
+    raise FemError(f"{path}: another run wrote this file while this one was running; "
+                   f"this run's output is in {kept}")
+
+
+def free_name(path: Path) -> Path:
+    """path's stem-2.suffix, -3, ...: the first name not taken."""
+    for n in range(2, 10000):
+        candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
+        if not os.path.lexists(candidate):
+            return candidate
+    raise FemError(f"{path}: too many files named {path.stem}-N{path.suffix}")
+
+
+def open_stream(path, overwrite: bool):
+    """Open `path` to write rows into as they come (the window's --stats: `tail -f` follows
+    it while the window is open), not under a temporary name. Without overwrite the file
+    must not exist (another run may have created it since the check)."""
+    mode = "w" if overwrite or is_special(path) else "x"
+    try:
+        return open(path, mode, buffering=1)
+    except FileExistsError:
+        raise FemError(f"{path}: file exists; use --overwrite to replace it") from None
+    except OSError as error:
+        raise write_failed(path, error) from None
+
+
+def truncate_to_last_line(file_descriptor):
+    """Cut a file of text lines back to its last complete line (a full disk can stop a
+    write half way through a row); returns the number of complete lines kept."""
+    os.lseek(file_descriptor, 0, os.SEEK_SET)
+    data = b""
+    while chunk := os.read(file_descriptor, 1 << 20):
+        data += chunk
+    end = data.rfind(b"\n") + 1
+    os.ftruncate(file_descriptor, end)
+    return data.count(b"\n", 0, end)
+
+
+def write_failed(path, error: OSError, kept: str = "") -> FemError:
+    """The one-line error for an output that could not be written, e.g.
+    'out/s.jsonl: no space left on device; kept the 41 complete rows'."""
+    reason = "no space left on device" if error.errno in (errno.ENOSPC, errno.EDQUOT) else \
+        (error.strerror or str(error)).lower()
+    return FemError(f"{path}: {reason}" + (f"; {kept}" if kept else ""))
+
+
+class FolderLock:
+    """An exclusive lock on an output folder for as long as a run writes into it (flock on
+    the folder itself: nothing is added to it, and the kernel drops the lock when the
+    process ends however it ends). A second run into the same folder gets a FemError."""
+
+    def __init__(self, folder, option="--out"):
+        self.folder, self.option = Path(folder), option
+        self.descriptor = None
+
+    def __enter__(self):
+        self.descriptor = os.open(self.folder, os.O_RDONLY)
+        try:
+            fcntl.flock(self.descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.descriptor)
+            raise FemError(f"{self.option} {self.folder}: another run is writing into this folder; "
+                           f"wait for it or choose another folder") from None
+        except OSError:
+            pass                      # a file system without locks: run unlocked
+        return self
+
+    def __exit__(self, *exc):
+        os.close(self.descriptor)
+        return False

@@ -1,0 +1,57 @@
+"""Every committed figure still says what the engine does: each docs/NAME.json (the numbers drawn
+in docs/NAME.png) against a fresh `figures` run, within a tolerance. (tests/test_figures.py checks
+the torsion figures and how every figure is made; frame25_coursework needs the coursework's files.)
+When the engine changes a figure, regenerate it: `.venv/bin/python main.py figures --out docs --overwrite`.
+"""
+
+import json
+import math
+
+import pytest
+
+from test_cli import run
+from test_figures import DOCS
+
+FIGURES = ["accuracy_vs_time", "volume_bunny", "volume_cube", "volume_cube86", "volume_epcot", "volume_fertility",
+           "frame25_builtin", "epcot_compare", "epcot_compare_volume", "hard_case_energy"]
+# Numbers agree to 5 % or 0.01 (f32 round-off in long runs, a few solver iterations more or less).
+RELATIVE, ABSOLUTE = 0.05, 1e-2
+
+
+def differences(made, committed, where=""):
+    """Where two JSON values differ beyond the tolerance: [(path, made, committed)]."""
+    if isinstance(made, dict) and isinstance(committed, dict):
+        if set(made) != set(committed):
+            return [(where, sorted(made), sorted(committed))]
+        return [d for key in made for d in differences(made[key], committed[key], f"{where}.{key}")]
+    if isinstance(made, list) and isinstance(committed, list):
+        if len(made) != len(committed):
+            return [(where, f"{len(made)} values", f"{len(committed)} values")]
+        return [d for i, (a, b) in enumerate(zip(made, committed)) for d in differences(a, b, f"{where}[{i}]")]
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (made, committed))
+    if numbers:
+        return [] if math.isclose(made, committed, rel_tol=RELATIVE, abs_tol=ABSOLUTE) else [(where, made, committed)]
+    return [] if made == committed or where.endswith("source") else [(where, made, committed)]
+
+
+@pytest.fixture(scope="module")
+def fresh(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fresh-figures")
+    code, _, err = run("figures", "--out", str(out), "--only", *FIGURES)
+    assert code == 0, err
+    return out
+
+
+@pytest.mark.parametrize("name", FIGURES)
+def test_the_committed_figure_says_what_the_engine_does_now(fresh, name):
+    made = json.loads((fresh / f"{name}.json").read_text())
+    committed = json.loads((DOCS / f"{name}.json").read_text())
+    found = differences(made, committed, name)
+    assert found == [], f"{len(found)} numbers differ, e.g. {found[:3]}: regenerate docs/{name}.png"
+
+
+def test_the_comparison_finds_a_figure_that_no_longer_matches():
+    committed = {"total_energy": {"single": [1.0, 9.25]}}
+    assert differences({"total_energy": {"single": [1.0, 5.33]}}, committed) == [
+        (".total_energy.single[1]", 5.33, 9.25)]
+    assert differences({"total_energy": {"single": [1.0, 9.26]}}, committed) == []
