@@ -27,6 +27,7 @@ from app import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, program_name
 from app.display import display_problem
 from app.files import check_output, interrupt_on_sigterm
 from fem.errors import FemError, SizeLimitError
+from fem.scene import INTEGRATORS
 
 DEFAULT_SCENE = "epcot"
 DEFAULT_FRAMES = 150            # of the export a bare `main.py` makes without a display
@@ -129,7 +130,7 @@ def add_scene_options(p, scene_required=True):
     p.add_argument("--step", choices=["newton", "single"],
                    help="newton: minimise the incremental potential, energy never rises (default); "
                         "single: one linear solve per step, rotations frozen (cheaper, can gain energy)")
-    p.add_argument("--integrator", choices=["backward-euler", "bdf2"],
+    p.add_argument("--integrator", choices=INTEGRATORS,
                    help="backward-euler: first order, damps fast motion; bdf2: second order, "
                         "keeps spin and waves (the first step and each one after an impulse is backward Euler)")
     p.add_argument("--dt", type=POSITIVE, help="time step, s")

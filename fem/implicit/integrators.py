@@ -21,9 +21,6 @@ from dataclasses import dataclass
 
 import taichi as ti
 
-INTEGRATORS = ("backward-euler", "bdf2")
-
-
 @dataclass(frozen=True)
 class Target:
     """x^ = a x_n + b x_(n-1) (v^ likewise), h = h_per_dt dt."""
