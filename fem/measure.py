@@ -17,12 +17,14 @@ class Measure:
 
     start: a quaternion field (m,) to start each tet's rotation from (the solver's last
     rotations: near the answer, so Newton steps certify it and the SVD is rarely needed).
-    switches: the solver's `Switches` (only whether loops run serially is read).
+    switches: the solver's `Switches` (whether loops run serially, whether there is a ground).
+    effects: the solver's effects (fem/implicit/effects.py): the ground's contact energy.
     Like the solver, made once per Model and reused (fem/pool.py); `load` sets the gravity.
     """
 
-    def __init__(self, model, start, switches):
-        self.model = model
+    def __init__(self, model, start, switches, effects):
+        self.model, self.effects = model, effects
+        self.has_ground = switches.ground
         self.start = start              # quaternions (x, y, z, w) per tet: where rotations are sought from
         n_bodies, n_tets = model.capacity.bodies, model.capacity.tets
         self.gravity = ti.Vector.field(3, ti.f64, ())   # m/s^2; the potential is -sum m g.x, zero at the origin
@@ -30,6 +32,7 @@ class Measure:
         self.elastic = ti.field(ti.f64, n_bodies)       # J
         self.kinetic = ti.field(ti.f64, n_bodies)       # J
         self.potential = ti.field(ti.f64, n_bodies)     # J, gravitational
+        self.contact = ti.field(ti.f64, n_bodies)       # J, stored in the ground's penalty
         self.inverted = ti.field(ti.i32, n_bodies)
         self.tet_volume_ratio = ti.field(float, n_tets)
         self.tet_energy_density = ti.field(float, n_tets)   # J/m^3
@@ -47,6 +50,7 @@ class Measure:
         returns how many tets are left for `measure_svd_tets`."""
         for b in range(self.model.body_count[None]):
             self.volume[b], self.elastic[b], self.kinetic[b], self.potential[b] = 0.0, 0.0, 0.0, 0.0
+            self.contact[b] = 0.0
             self.inverted[b] = 0
         left = 0
         ti.loop_config(serialize=self.serial_tets)
@@ -75,6 +79,8 @@ class Measure:
             b = self.model.vertex_body[i]
             self.kinetic[b] += 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr()
             self.potential[b] -= m * g.dot(ti.cast(x[i], ti.f64))
+            if ti.static(self.has_ground):
+                self.contact[b] += self.effects.contact_energy(i, x[i])
         return left
 
     @ti.kernel
@@ -88,10 +94,11 @@ class Measure:
 
     @ti.kernel
     def body_table(self, table: ti.types.ndarray()):
-        """Per body: kinetic, elastic and potential energy, volume, inverted tets (one read, not five)."""
+        """Per body: kinetic, elastic and potential energy, volume, inverted tets, contact energy
+        (one read, not six)."""
         for b in range(table.shape[0]):
             table[b, 0], table[b, 1], table[b, 2] = self.kinetic[b], self.elastic[b], self.potential[b]
-            table[b, 3], table[b, 4] = self.volume[b], self.inverted[b]
+            table[b, 3], table[b, 4], table[b, 5] = self.volume[b], self.inverted[b], self.contact[b]
 
     @ti.func
     def deformation(self, x: ti.template(), e):
@@ -113,18 +120,21 @@ class Measure:
     def read(self, x, v):
         """Per-body numbers as plain Python: volume ratio, energies (J), inverted tets.
 
-        total_energy = kinetic + elastic + gravitational potential.
+        total_energy = kinetic + elastic + gravitational potential + contact (the ground's
+        penalty, 0 without a ground): the energy the step never raises.
         """
         self.measure(x, v)
         rest = np.array([b.rest_volume for b in self.model.bodies])
-        table = np.zeros((len(rest), 5))
+        table = np.zeros((len(rest), 6))
         self.body_table(table)
-        kinetic, elastic, potential, volume, inverted = table.T
+        kinetic, elastic, potential, volume, inverted, contact = table.T
+        potential = potential + contact
         inverted = inverted.astype(int)
         return {
             "kinetic_energy": float(kinetic.sum()),
             "elastic_energy": float(elastic.sum()),
-            "gravity_energy": float(potential.sum()),
+            "gravity_energy": float((potential - contact).sum()),
+            "contact_energy": float(contact.sum()),
             "total_energy": float((kinetic + elastic + potential).sum()),
             "volume_ratio": (volume / rest).tolist(),
             "inverted_tets": int(inverted.sum()),

@@ -70,7 +70,7 @@ def make(capacity, switches):
     model = Model(capacity)
     solver = ImplicitSolver(model, switches)
     made["parts"] += 1
-    return Parts(model, solver, Measure(model, solver.rotations.quaternions, switches),
+    return Parts(model, solver, Measure(model, solver.rotations.quaternions, switches, solver.effects),
                  (State(capacity.vertices), State(capacity.vertices)))
 
 

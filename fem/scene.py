@@ -98,7 +98,7 @@ class Effects:
 
     gravity: tuple | None = None        # (gx, gy, gz) m/s^2
     ground: float | None = None         # ground plane height y (m)
-    friction: float = 0.5               # tangential velocity removed on contact, 0..1
+    friction: float = 0.5               # Coulomb's coefficient mu on the ground (>= 0)
     alpha: float = 0.0                  # Rayleigh damping D = alpha M + beta K
     beta: float = 0.0
 

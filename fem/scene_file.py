@@ -198,6 +198,8 @@ def read_body(raw, index, path, build_mesh):
     return body
 
 
+MAX_FRICTION = 10.0      # Coulomb's coefficient: rubber on rubber is about 1; above 10 it is a typo
+
 REGION_KEYS = ["body", "vertices", "sphere", "box"]
 
 
@@ -280,8 +282,9 @@ def read_effects(t, path):
         g = t.table("ground", ["height", "friction"])
         e.ground = g.get("height", "float", 0.0)
         e.friction = g.get("friction", "float", 0.5)
-        if not 0 <= e.friction <= 1:
-            raise FemError(f"{path}: effects.ground.friction must be in [0, 1], got {e.friction}")
+        if not 0 <= e.friction <= MAX_FRICTION:
+            raise FemError(f"{path}: effects.ground.friction (Coulomb's coefficient) must be in "
+                           f"[0, {MAX_FRICTION:g}], got {e.friction}")
     if "damping" in t:
         d = t.table("damping", ["alpha", "beta"])
         e.alpha, e.beta = d.get("alpha", "float", 0.0), d.get("beta", "float", 0.0)

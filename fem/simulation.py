@@ -20,11 +20,14 @@ from fem import pool
 from fem.builder import initial_state, model_arrays
 from fem.errors import FemError
 from fem.scene import METHODS, Material, select_vertices
+from fem.implicit.effects import FRICTION_SPEED
 from fem.implicit.solver import StepInfo
 
 # A body sleeps after QUIET_STEPS steps in a row in which no vertex moved more than
 # QUIET_MOTION of the body's size: its velocities are set to 0 and steps leave it exactly
 # as it is, at no cost, until an impulse (a click), a new state, material or method wakes it.
+# A body pressed into the ground is quiet below the smoothed friction's creep speed too
+# (FRICTION_SPEED, fem/implicit/effects.py): friction holds it, up to that creep.
 QUIET_STEPS = 25
 QUIET_MOTION = 1e-6
 
@@ -88,9 +91,13 @@ class Simulation:
         speed = np.zeros(len(self.awake))
         self.solver.sleep.body_speeds(self.state.v, speed)
         speed = np.sqrt(speed)
+        creep = np.zeros(len(self.awake), np.int32)
+        if self.solver.switches.ground:
+            self.solver.effects.body_grounded(self.state.x, creep)
         fell = False
         for b, body in enumerate(self.model.bodies):
-            quiet = self.awake[b] and speed[b] * self.settings.dt <= QUIET_MOTION * body.size
+            quiet_speed = max(QUIET_MOTION * body.size / self.settings.dt, FRICTION_SPEED * creep[b])
+            quiet = self.awake[b] and speed[b] <= quiet_speed
             self.quiet[b] = self.quiet[b] + 1 if quiet else 0
             if self.quiet[b] >= QUIET_STEPS:
                 self.awake[b], fell = False, True

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from scenes.hard_cases import ENERGY_STEPS, HARD_CASES, METHODS, HardCase, build_scene, mirror_inverted
+from scenes.hard_cases import (ENERGY_STEPS, GROUND_STEPS, HARD_CASES, METHODS, HardCase, build_scene, ground_scene,
+                               mirror_inverted)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -90,27 +91,43 @@ def run_hard_cases(cases, methods=METHODS):
             for i, (case, method, ids) in enumerate(layout)]
 
 
-def energy_history(dt, steps=ENERGY_STEPS, methods=METHODS):
+def energy_history(dt, steps=ENERGY_STEPS, methods=METHODS, integrator="backward-euler"):
     """Every hard case at time step dt for `steps` steps, in one Simulation (fem.init first).
 
-    Returns (layout, energies): energies (steps + 1, cases) is each case's total energy (J:
-    kinetic + elastic + gravitational) at the start and after every step.
+    Returns (layout, energies, infos): energies (steps + 1, cases) is each case's total energy
+    (J: kinetic + elastic + gravitational) at the start and after every step; infos, what
+    each step did (Simulation.step).
     """
     import fem
 
     scene, layout = build_scene([replace(case, dt=dt, steps=steps) for case in HARD_CASES], methods)
+    scene.solver.integrator = integrator
     sim = fem.Simulation(scene)
     mirror_inverted(sim, layout)
+    return layout, *run_energies(sim, layout, steps)
 
+
+def ground_history(dt, integrator="backward-euler", steps=None):
+    """The ground drops (scenes/hard_cases.py: ground_scene) at time step dt; as energy_history,
+    the energies (J) now with the contact's."""
+    import fem
+
+    scene, layout = ground_scene(dt, integrator)
+    sim = fem.Simulation(scene)
+    return layout, *run_energies(sim, layout, steps or GROUND_STEPS[dt])
+
+
+def run_energies(sim, layout, steps):
+    """(energies (steps + 1, cases), infos): each case's total energy before and after each step."""
     def per_case():
         energy = np.asarray(sim.stats()["body_total_energy"])
         return [float(energy[ids].sum()) for _, _, ids in layout]
 
-    energies = [per_case()]
+    energies, infos = [per_case()], []
     for _ in range(steps):
-        sim.step()
+        infos.append(sim.step())
         energies.append(per_case())
-    return layout, np.array(energies)
+    return np.array(energies), infos
 
 
 def vertex_range(sim, body_ids):

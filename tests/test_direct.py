@@ -48,15 +48,16 @@ def test_direct_matches_the_engine_with_every_effect(f64, backend):
     """Gravity, Rayleigh damping, pins and the ground over several steps: the contacts come and go,
     so the fixed dofs change while the analysed pattern stays."""
     effects = Effects(gravity=(0.0, -9.81, 0.0), ground=-0.6, alpha=0.1, beta=0.01)
-    sim = fem.Simulation(twisted_spinning_box("corotational", effects, pinned=[0, 1]), step="single")
+    sim = fem.Simulation(twisted_spinning_box("corotational", effects, pinned=[0, 1]), step="single",
+                         tolerance=1e-12)
     solver = DirectSolver(sim, backend)
     contacts = set()
     for _ in range(20):
         sim.step()
         solver.step()
-        contacts.add(int(solver.fixed.sum()))
-    assert len(contacts) > 2                     # pins alone, then contacts made and let go
-    assert solver.x[:, 1].min() >= -0.6
+        contacts.add(int((solver.x[:, 1] < -0.6).sum()))
+    assert len(contacts) > 2                     # none, then contacts made and let go
+    assert solver.x[2:, 1].min() >= -0.6 - 1e-2  # the free vertices: the penalty lets the plane give a little
     assert not solver.v[[0, 1]].any()
     np.testing.assert_allclose(solver.x, sim.positions(), atol=1e-9)
 

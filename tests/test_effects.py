@@ -1,10 +1,13 @@
-"""Effects: pins hold, gravity pulls, the ground stops a falling body."""
+"""Effects: pins hold, gravity pulls, the ground stops a falling body, and its friction is
+Coulomb's (fem/implicit/effects.py)."""
 
 import numpy as np
+import pytest
 from conftest import box_mesh, make_scene
 
 import fem
-from fem.scene import Effects
+from fem.implicit.effects import RECOVERY_SPEED
+from fem.scene import Effects, SolverSettings
 
 
 def test_pinned_vertices_stay_put_and_gravity_pulls_the_rest(f64):
@@ -27,5 +30,49 @@ def test_ground_stops_a_falling_body(f64):
     sim = fem.Simulation(scene)
     for _ in range(100):
         sim.step()
-    assert sim.positions()[:, 1].min() >= 0.0
+    assert sim.positions()[:, 1].min() >= -1e-3      # the penalty's sag under the body's weight
     assert sim.positions()[:, 1].max() < 1.2
+
+
+def settled_block(mu, dt=0.01):
+    """A stiff 1 m block resting on the ground (its normal forces set) with friction mu."""
+    scene = make_scene(box_mesh(2), "corotational", E=1e7, position=(0, 0.5, 0),
+                       effects=Effects(gravity=(0.0, -9.81, 0.0), ground=0.0, friction=mu),
+                       solver=SolverSettings(dt=dt, tolerance=1e-8, max_iterations=500))
+    sim = fem.Simulation(scene)
+    for _ in range(30):
+        sim.step()
+    return sim
+
+
+@pytest.mark.parametrize("mu", [0.2, 0.5])
+def test_a_block_sliding_on_the_ground_slows_at_mu_g(f64, mu):
+    """Coulomb friction: a block sliding at 2 m/s decelerates at mu g (analytic), and stops there."""
+    sim = settled_block(mu)
+    v = sim.velocities()
+    v[:, 0] += 2.0
+    sim.set_state(sim.positions(), v)
+    for _ in range(20):                                # 0.2 s
+        sim.step()
+    speed = sim.velocities()[:, 0].mean()
+    np.testing.assert_allclose(speed, 2.0 - mu * 9.81 * 0.2, rtol=0.03)
+
+
+def test_a_body_placed_deep_in_the_ground_rises_out_of_it_slowly(f64):
+    """A body started 0.3 m into the ground is not shot out by the penalty's stored energy: it
+    rises at RECOVERY_SPEED (its plane rises that fast), so its centre rises at most twice as
+    fast (the free top rebounds from the bottom's push, as from a piston), and its total energy
+    (with the contact's, 3e6 J at the start) never rises."""
+    scene = make_scene(box_mesh(2), "corotational", E=1e5, position=(0, 0.2, 0),
+                       effects=Effects(gravity=(0.0, -9.81, 0.0), ground=0.0),
+                       solver=SolverSettings(dt=0.01, tolerance=1e-6, max_iterations=500))
+    sim = fem.Simulation(scene)
+    energies, rise = [sim.stats()["total_energy"]], []
+    for _ in range(60):
+        sim.step()
+        energies.append(sim.stats()["total_energy"])
+        rise.append(sim.velocities()[:, 1].mean())
+    assert max(rise) <= 2 * RECOVERY_SPEED
+    assert sim.positions()[:, 1].min() > -1e-3         # out of the ground after 0.6 s
+    assert np.diff(energies).max() <= 1e-6 * max(np.abs(energies))
+

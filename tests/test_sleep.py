@@ -25,10 +25,10 @@ def settling_scene(sleep=True, effects=DAMPED, bodies=1):
 
 
 def run_until_asleep(sim, body=0, steps=600):
-    for _ in range(steps):
+    for k in range(steps):
         sim.step()
         if sim.asleep[body]:
-            return
+            return k + 1
     raise AssertionError(f"body {body} never fell asleep in {steps} steps")
 
 
@@ -98,9 +98,9 @@ def test_edits_wake_a_body_and_a_body_resting_on_the_ground_sleeps_on_it():
     ground = Effects(gravity=(0.0, -9.81, 0.0), ground=0.0, alpha=2.0, beta=0.05)
     scene = make_scene(box_mesh(3), effects=ground, solver=SETTINGS, position=(0, 0.05, 0))
     sim = fem.Simulation(scene)
-    run_until_asleep(sim, steps=3000)      # converged steps: its slow slide on the ground takes ~2000 to stop
-    assert sim.positions()[:, 1].min() >= 0.0
-    sim.set_material(0, 2e4, 0.3)
+    run_until_asleep(sim, steps=1500)      # ~450 steps: friction holds it (creep below FRICTION_SPEED)
+    assert sim.positions()[:, 1].min() >= -1e-3          # the penalty's sag under the body's weight
+    sim.set_material(0, 1e5, 0.3)          # stiffer: the squashed body (E 1e4 Pa, 1 m) springs back up
     assert sim.asleep == [False]
     run_until_asleep(sim, steps=1500)
     sim.set_method("linear")

@@ -37,7 +37,7 @@ def launches_per_step(scene, steps=5):
     for _ in range(steps):
         sim.step()
     ti.sync()
-    names = ["extract_rotations", "build_preconditioner", "ground_contact", "gradient_corners",
+    names = ["extract_rotations", "build_preconditioner", "start_contacts", "gradient_corners",
              "energy_tets", "start_iterate"]
     # A kernel compiled for two argument sets (the two swapped States) has two record names,
     # name_c<id>_<n>_kernel_<task>_<kind>; its first task (kernel_0) runs once per launch.
@@ -52,7 +52,7 @@ def test_switched_off_effects_launch_no_work():
     linear = launches_per_step(make_scene(mesh, "linear"))
     assert linear["extract_rotations"] == 0            # no corotational body: no rotation ever
     assert linear["build_preconditioner"] == 0         # linear: built once, in the first step
-    assert linear["ground_contact"] == 0
+    assert linear["start_contacts"] == 0
     assert linear["energy_tets"] == 5                  # E at the first iterate only: at rest, no iteration
     assert linear["start_iterate"] == 5
     corot = launches_per_step(make_scene(mesh, "corotational", solver=SolverSettings(step="single")))
@@ -60,5 +60,5 @@ def test_switched_off_effects_launch_no_work():
     assert corot["build_preconditioner"] == 0          # at rest: the first step's blocks still fit
     ground = launches_per_step(make_scene(mesh, "linear", position=(0, 1, 0),
                                           effects=Effects(gravity=(0, -9.81, 0), ground=0.0)))
-    assert ground["ground_contact"] == 5
+    assert ground["start_contacts"] == 5
     assert ground["gradient_corners"] == linear["gradient_corners"]   # gravity adds code, not launches

@@ -12,7 +12,9 @@ from a numpy SVD, so this module shares no code with the engine's solver and
 the two can check each other. It always runs in float64.
 
 A's sparsity pattern is the mesh's and never changes: the rotations change its values, and a
-pinned or grounded dof clears its row and column but keeps them. So a solver that can split
+pinned dof clears its row and column but keeps them. The ground is the engine's energy (a
+penalty and lagged friction, fem/implicit/effects.py): on a scene with a ground each step
+minimises it by Newton's method, refactorising A plus the ground's per-vertex blocks. So a solver that can split
 its work analyses the pattern (fill-reducing ordering, symbolic factor) once and only
 refactorises the values each step, as a user who knows their solver would. A backend
 `B(A)` analyses what it can of A's pattern; `factorise(A)` for A's values, then `solve(b)`;
@@ -32,6 +34,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fem.builder import initial_state
+from fem.implicit.effects import CONTACT_STIFFNESS, FRICTION_SPEED, RECOVERY_SPEED
 
 try:
     import pypardiso
@@ -192,7 +195,6 @@ class DirectSolver:
         self.build_pattern(n)
         self.x, self.v = initial_state(sim.scene, model)
         self.t = 0.0
-        self.pressed = np.zeros(n, bool)    # vertices the ground pushed up last step
         self.A = self.system_matrix(self.rotations())
         self.fixed = None                   # the dofs fixed when A was last factorised
         self.backend_name = backend or fastest_available()
@@ -211,6 +213,8 @@ class DirectSolver:
         self.indptr = np.searchsorted(keys // size, np.arange(size + 1)).astype(np.int32)
         self.rows = (keys // size).astype(np.int32)
         self.diagonal = np.flatnonzero(self.rows == self.indices)   # one slot per dof, in dof order
+        own = 3 * np.arange(n)[:, None, None]                       # each vertex's own 3x3 block
+        self.blocks = np.searchsorted(keys, (own + np.arange(3)[:, None]) * size + own + np.arange(3))
         self.size = size
 
     def rotations(self):
@@ -229,38 +233,12 @@ class DirectSolver:
         data[self.diagonal] += self.cM * np.repeat(self.mass, 3)
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
 
-    def contacts(self):
-        """(n,) bool, the engine's active set: free vertices whose velocity would take them below
-        the ground this step, or that the ground still pushed up last step."""
-        if self.effects.ground is None:
-            return self.pressed
-        return self.free & ((self.x[:, 1] + self.dt * self.v[:, 1] < self.effects.ground) | self.pressed)
-
-    def constraints(self, contact):
-        """(fixed, v_fixed), (3n,) each: the dofs whose new velocity is prescribed, and its value.
-
-        Pinned vertices keep v = 0; a vertex in contact gets the normal velocity that lands it on the plane.
-        """
-        fixed = ~self.free_dofs
-        v_fixed = np.zeros(self.size)
-        normal = 3 * np.flatnonzero(contact) + 1
-        fixed[normal] = True
-        if len(normal):
-            v_fixed[normal] = (self.effects.ground - self.x[contact, 1]) / self.dt
-        return fixed, v_fixed
-
-    def constrained(self, fixed):
-        """A with the rows and columns of fixed dofs cleared but for their diagonal: the same pattern."""
-        data = self.A.data.copy()
+    def constrained(self, fixed, A=None):
+        """A (default: self.A) with the rows and columns of fixed dofs cleared but for their
+        diagonal: the same pattern."""
+        data = (self.A if A is None else A).data.copy()
         data[(fixed[self.rows] | fixed[self.indices]) & (self.rows != self.indices)] = 0
         return sp.csr_matrix((data, self.indices, self.indptr), shape=self.A.shape)
-
-    def constrained_rhs(self, b, fixed, v_fixed):
-        """The right-hand side for the constrained A: the fixed dofs' coupling moves into it, and
-        their rows read A_ii v_i = A_ii v_fixed_i."""
-        rhs = b - self.A @ v_fixed
-        rhs[fixed] = self.A.data[self.diagonal][fixed] * v_fixed[fixed]
-        return rhs
 
     @property
     def memory_bytes(self):
@@ -290,39 +268,80 @@ class DirectSolver:
             np.add.at(self.v, ids, self.free[ids, None] * np.asarray(dv, float))
         R = self.rotations()
         rotated = time.perf_counter()
-        contact = self.contacts()
-        fixed, v_fixed = self.constraints(contact)
+        fixed = ~self.free_dofs                    # pinned: v = 0
         corotational = self.corotational.any()
         if corotational:
             self.A = self.system_matrix(R)
         assembled = time.perf_counter()
-        if corotational or self.fixed is None or not np.array_equal(fixed, self.fixed):
-            self.backend.factorise(self.constrained(fixed))   # linear: once, unless the contacts change
-            self.fixed = fixed
-        factorised = time.perf_counter()
+        ground = self.effects.ground is not None
+        if not ground and (corotational or self.fixed is None):
+            self.backend.factorise(self.constrained(fixed))   # linear: once
+        self.fixed = fixed
+        factorised = time.perf_counter()           # on the ground, Newton factorises once per iteration
         f = self.elastic_forces(R)
         if self.effects.gravity is not None:
             f += self.mass[:, None] * np.asarray(self.effects.gravity)
         b = (self.mass[:, None] * self.v + self.dt * f).ravel()
-        v_new = self.backend.solve(self.constrained_rhs(b, fixed, v_fixed))
-        if self.effects.ground is not None:   # the plane pushes where (A v - b)_y > 0; elsewhere it may let go
-            self.pressed = contact & ((self.A @ v_new - b)[1::3] > 0)
+        if ground:
+            v_new = self.ground_newton(b, fixed)
+        else:
+            v_new = self.backend.solve(np.where(fixed, 0.0, b))
         self.v = v_new.reshape(-1, 3)
         self.x = self.x + self.dt * self.v
-        if self.effects.ground is not None:
-            self.ground_contact(contact)
         self.t += self.dt
         end = time.perf_counter()
         return {"wall_ms": 1e3 * (end - start), "rotation_ms": 1e3 * (rotated - start),
                 "assembly_ms": 1e3 * (assembled - rotated), "factorise_ms": 1e3 * (factorised - assembled),
                 "solve_ms": 1e3 * (end - factorised)}
 
-    def ground_contact(self, contact):
-        """As the engine: friction on the vertices in contact, and none left below the plane."""
-        below = self.x[:, 1] < self.effects.ground
-        self.pressed |= below
-        hit = contact | below
-        self.x[hit, 1] = np.maximum(self.x[hit, 1], self.effects.ground)
-        self.v[hit, 1] = np.maximum(self.v[hit, 1], 0.0)
-        self.v[hit, 0] *= 1 - self.effects.friction
-        self.v[hit, 2] *= 1 - self.effects.friction
+    # ---------------------------------------------------------------- the ground, as the engine's energy
+
+    def ground_terms(self, v, plane, normal):
+        """The ground's terms of E at velocities v (n, 3) (fem/implicit/effects.py): the penalty
+        below each vertex's plane and the lagged friction, J; their gradient (n, 3), N s, and
+        Hessian blocks (n, 3, 3), kg/s."""
+        k = CONTACT_STIFFNESS / self.dt ** 2 * self.mass
+        d = np.minimum(0.0, self.x[:, 1] + self.dt * v[:, 1] - plane)
+        grad, hess = np.zeros_like(v), np.zeros((len(v), 3, 3))
+        grad[:, 1] = self.dt * k * d
+        hess[:, 1, 1] = self.dt ** 2 * k * (d < 0)
+        u = v[:, [0, 2]]
+        s = np.linalg.norm(u, axis=1)
+        c = self.dt * self.effects.friction * normal / np.maximum(s, FRICTION_SPEED)
+        f0 = np.where(s < FRICTION_SPEED, 0.5 * s * s / FRICTION_SPEED, s - 0.5 * FRICTION_SPEED)
+        grad[:, [0, 2]] = c[:, None] * u
+        t = u / np.maximum(s, FRICTION_SPEED)[:, None] * (s >= FRICTION_SPEED)[:, None]   # sliding: no
+        block = c[:, None, None] * (np.eye(2) - t[:, :, None] * t[:, None, :])           # stiffness along t
+        hess[:, 0, 0], hess[:, 0, 2], hess[:, 2, 0], hess[:, 2, 2] = block.reshape(-1, 4).T
+        energy = 0.5 * (k * d * d).sum() + (self.dt * self.effects.friction * normal * f0).sum()
+        return energy, grad, hess
+
+    def ground_newton(self, b, fixed, tolerance=1e-12, iterations=50):
+        """The step's v on the ground: the minimiser of E(v) = 1/2 v^T A v - b^T v + the ground's
+        terms, by Newton's method with a backtracking line search; A plus the ground's blocks is
+        factorised at every iteration (same pattern: the blocks are each vertex's own)."""
+        plane = np.minimum(self.effects.ground, self.x[:, 1] + RECOVERY_SPEED * self.dt)
+        normal = CONTACT_STIFFNESS / self.dt ** 2 * self.mass * np.maximum(0.0, plane - self.x[:, 1])
+
+        def energy(v):
+            e, g, H = self.ground_terms(v.reshape(-1, 3), plane, normal)
+            return 0.5 * v @ (self.A @ v) - b @ v + e, np.where(fixed, 0.0, self.A @ v - b + g.ravel()), H
+
+        v = np.zeros(self.size)
+        E, g, H = energy(v)
+        scale = np.linalg.norm(np.where(fixed, 0.0, b)) + 1e-300
+        for _ in range(iterations):
+            if np.linalg.norm(g) <= tolerance * scale:
+                break
+            A = self.A.copy()
+            np.add.at(A.data, self.blocks.ravel(), H.ravel())
+            self.backend.factorise(self.constrained(fixed, A))
+            d = self.backend.solve(-g)
+            a = 1.0
+            while True:
+                E_new, g_new, H_new = energy(v + a * d)
+                if E_new <= E + 1e-4 * a * (g @ d) or a < 1e-8:
+                    break
+                a *= 0.5
+            v, E, g, H = v + a * d, E_new, g_new, H_new
+        return v

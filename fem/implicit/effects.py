@@ -1,26 +1,48 @@
 """The effects a scene switches on: gravity, Rayleigh damping, pins and ground contact.
 
 Each is a `ti.static` branch fixed when the solver is made (`Switches`): an effect a scene
-leaves off compiles to nothing. Gravity and damping enter the incremental potential
-(fem/implicit/potential.py reads their fields); pins, ground contact and sleeping bodies
-are constraints, applied by zeroing rows (`filtered`, filtered CG, Baraff & Witkin 1998).
+leaves off compiles to nothing. Gravity, damping and the ground are terms of the incremental
+potential E(v) (fem/implicit/potential.py adds them up); pins and sleeping bodies are
+constraints, applied by zeroing rows (`filtered`, filtered CG, Baraff & Witkin 1998).
 
-The ground is an active set chosen at the step's start (`start_iterate`, fem/implicit/newton.py):
-a vertex below the plane, or one the ground pushed up last step (`pressed`), has its normal
-velocity prescribed so that it lands on the plane; after the solve `mark_pressed` keeps those
-the plane still pushes, and `ground_contact` applies friction and lifts any vertex left below.
+The ground is an energy, so the line search that lowers E lowers it too (method.md, section 6):
+
+    contact   C(x) = sum_i k m_i / 2 min(0, y_i - y_g)^2,   k = CONTACT_STIFFNESS / dt^2   (J)
+    friction  h mu sum_i lambda_i f0(|u_i|),   u_i the tangential velocity (x, z) (J)
+
+C is a penalty: a vertex below the plane y_g is pushed up by k m_i (y_g - y_i), so a body at
+rest sinks by about (vertices above a bottom vertex) g dt^2 / CONTACT_STIFFNESS (0.04 mm for a
+column of ten at dt 0.02 s). It is part of the total energy the step never raises. A vertex
+deeper than one step of RECOVERY_SPEED (a body placed into the ground) is not shot out by the
+energy stored there: within a step its plane is RECOVERY_SPEED dt above where it starts
+(`plane`), so it rises at that speed, releasing the stored energy as it goes. Friction is
+Coulomb's, lagged as in IPC (Li et al. 2020): lambda_i is the normal force at the step's start
+(N), mu the coefficient, and f0 smooths |u| below FRICTION_SPEED into a parabola, so a vertex
+that slides loses mu lambda_i of force and one nearly at rest sticks. It only dissipates.
+Sticking is smoothed: a vertex held by friction against a tangential force F creeps at
+FRICTION_SPEED F / (mu lambda_i) < FRICTION_SPEED, so a body resting on the ground counts as
+quiet below that speed (fem/simulation.py puts it to sleep).
 
 Fields (n vertices of the capacity; one entry when the scene has no ground):
     mass_damping ()       alpha, 1/s
     stiffness_damping ()  beta, s
     gravity ()            g, m/s^2
-    ground ()             plane height y, m
-    friction ()           share of tangential velocity lost on contact
-    contact (n,)          1: on the ground this step
-    pressed (n,)          1: the ground pushed it last step
+    ground ()             plane height y_g, m
+    friction ()           mu, Coulomb's coefficient
+    contact_stiffness ()  k, 1/s^2 (per unit mass)
+    plane (n,)            the plane's height for vertex i in this step, m: y_g, or lower for a
+                          vertex deep below it
+    normal_force (n,)     lambda_i at the step's start, N
+    contact_hessian (n, 4)  the contact's and friction's Hessian at the accepted iterate,
+                          (xx, yy, zz, xz), kg/s (H-units: N s per m/s): a vertex's own block
 """
 
 import taichi as ti
+
+CONTACT_STIFFNESS = 1000.0   # k dt^2: the penalty's stiffness in units of a vertex's inertia over one step
+FRICTION_SPEED = 1e-3        # m/s: below this tangential speed friction is a smooth parabola (sticking);
+                             # a body resting on the ground may creep at up to this speed (fem/simulation.py)
+RECOVERY_SPEED = 1.0         # m/s: how fast a vertex placed deep in the ground rises out of it
 
 
 @ti.data_oriented
@@ -31,7 +53,7 @@ class Effects:
         n = model.capacity.vertices
         self.model, self.elasticity, self.sleep = model, elasticity, sleep
         self.has_gravity, self.has_ground = switches.gravity, switches.ground     # compile-time switches
-        self.has_stiffness_damping = switches.stiffness_damping                   # D includes beta K_n
+        self.has_stiffness_damping = switches.stiffness_damping                   # D includes beta K(R)
         self.pins = switches.pins
         self.serial_vertices = switches.serial_vertices
         self.mass_damping = ti.field(float, ())
@@ -39,8 +61,10 @@ class Effects:
         self.gravity = ti.Vector.field(3, float, ())
         self.ground = ti.field(float, ())
         self.friction = ti.field(float, ())
-        self.contact = ti.field(ti.i32, n if self.has_ground else 1)
-        self.pressed = ti.field(ti.i32, n if self.has_ground else 1)
+        self.contact_stiffness = ti.field(float, ())
+        self.normal_force = ti.field(float, n if self.has_ground else 1)
+        self.plane = ti.field(float, n if self.has_ground else 1)
+        self.contact_hessian = ti.Vector.field(4, float, n if self.has_ground else 1)
 
     def load(self, effects):
         """A scene's effects (fem.scene.Effects); alpha and beta are also kept for the host."""
@@ -50,54 +74,96 @@ class Effects:
         self.ground[None] = effects.ground or 0.0
         self.friction[None] = effects.friction
 
+    def set_dt(self, dt):
+        """The contact's stiffness follows the scene's dt (not an integrator's own h), so that
+        the contact energy of a state does not change from one step to the next."""
+        self.contact_stiffness[None] = CONTACT_STIFFNESS / (dt * dt)
+
     @ti.func
     def filtered(self, i, a):
-        """Zero the constrained rows: pinned vertices, and the normal of those on the ground
-        (filtered CG, Baraff & Witkin 1998)."""
+        """Zero the constrained rows: pinned vertices and sleeping bodies (filtered CG)."""
         if ti.static(self.pins):
             a *= self.model.free[i]
-        if ti.static(self.has_ground):
-            if self.contact[i]:
-                a[1] = 0.0
         return a * self.sleep.awake[self.model.vertex_body[i]]    # a sleeping body is held like a pinned one
 
     @ti.func
     def gravity_vector(self):
         return self.gravity[None]
 
-    def ground_reaction(self, rhs, d, cM, cK, newton):
-        """pressed <- vertices in contact that the plane pushes up: the normal component of
-        grad E is positive there (E would fall if they went down). After a Newton step rhs
-        is -grad E at the result; after a single solve the linear model's gradient is
-        -rhs + H d, so K d is formed first."""
-        if not newton:
-            self.elasticity.stiffness_product(d)
-        self.mark_pressed(rhs, d, cM, cK, newton)
+    # ------------------------------------------------------------ the ground: energy, gradient, Hessian
+
+    @ti.func
+    def contact_energy(self, i, x):
+        """k m_i / 2 min(0, y - y_g)^2 of vertex i at position x, float64 (J): what the ground stores."""
+        d = ti.cast(ti.min(0.0, x[1] - self.ground[None]), ti.f64)
+        return 0.5 * ti.cast(self.contact_stiffness[None] * self.model.mass[i], ti.f64) * d * d
+
+    @ti.func
+    def step_contact_energy(self, i, x):
+        """The step's contact term of vertex i: as contact_energy, against its plane this step."""
+        d = ti.cast(ti.min(0.0, x[1] - self.plane[i]), ti.f64)
+        return 0.5 * ti.cast(self.contact_stiffness[None] * self.model.mass[i], ti.f64) * d * d
+
+    @ti.func
+    def friction_energy(self, i, v, h):
+        """h mu lambda_i f0(|u|) of vertex i at velocity v, float64 (J)."""
+        u = ti.cast(ti.Vector([v[0], v[2]]), ti.f64).norm()
+        eps = ti.static(FRICTION_SPEED)
+        f0 = u - 0.5 * eps
+        if u < eps:
+            f0 = 0.5 * u * u / eps
+        return ti.cast(h * self.friction[None] * self.normal_force[i], ti.f64) * f0
+
+    @ti.func
+    def contact_force(self, i, x, v, h):
+        """-grad of the contact and friction terms of vertex i at (x, v), N s; and their Hessian
+        there (kg/s), kept in contact_hessian for the products H u. Friction's Hessian is
+        I / eps while sticking (|u| < eps) and (I - t t^T) / |u| while sliding along t: none
+        along the slide, where the force is constant."""
+        km = self.contact_stiffness[None] * self.model.mass[i]
+        d = ti.min(0.0, x[1] - self.plane[i])
+        s = ti.Vector([v[0], v[2]]).norm()
+        c = h * self.friction[None] * self.normal_force[i] / ti.max(s, ti.static(FRICTION_SPEED))
+        xx, zz, xz = c, c, 0.0
+        if s >= ti.static(FRICTION_SPEED):
+            tx, tz = v[0] / s, v[2] / s
+            xx, zz, xz = c * (1.0 - tx * tx), c * (1.0 - tz * tz), -c * tx * tz
+        self.contact_hessian[i] = ti.Vector([xx, h * h * km * (d < 0.0), zz, xz])
+        return ti.Vector([-c * v[0], -h * km * d, -c * v[2]])
+
+    @ti.func
+    def contact_product(self, i, u: ti.template()):
+        """(the contact's Hessian) u at vertex i."""
+        c, w = self.contact_hessian[i], u[i]
+        return ti.Vector([c[0] * w[0] + c[3] * w[2], c[1] * w[1], c[3] * w[0] + c[2] * w[2]])
+
+    @ti.func
+    def contact_block(self, i):
+        """The contact's Hessian at vertex i as a 3x3 matrix (the preconditioner's share)."""
+        c = self.contact_hessian[i]
+        return ti.Matrix([[c[0], 0.0, c[3]], [0.0, c[1], 0.0], [c[3], 0.0, c[2]]])
 
     @ti.kernel
-    def mark_pressed(self, rhs: ti.template(), d: ti.template(), cM: float, cK: float, newton: ti.template()):
+    def start_contacts(self, xn: ti.template(), x: ti.template(), h: float, dt: float):
+        """At the step's start: each vertex's plane; lambda_i <- k m_i max(0, plane - y_i) at x_n,
+        the normal force that friction is lagged on; and the Hessian at the first iterate x
+        (v = 0), which the preconditioner is built with."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            if not self.sleep.awake[self.model.vertex_body[i]]:     # asleep: keeps its contacts for waking
-                continue
-            self.pressed[i] = 0
-            if self.contact[i]:
-                g = -rhs[i]
-                if ti.static(not newton):
-                    g += cM * self.model.mass[i] * d[i] + cK * self.elasticity.gather(i)
-                if g[1] > 0:
-                    self.pressed[i] = 1
+            km = self.contact_stiffness[None] * self.model.mass[i]
+            self.plane[i] = ti.min(self.ground[None], xn[i][1] + ti.static(RECOVERY_SPEED) * dt)
+            self.normal_force[i] = km * ti.max(0.0, self.plane[i] - xn[i][1])
+            drag = h * self.friction[None] * self.normal_force[i] / ti.static(FRICTION_SPEED)
+            self.contact_hessian[i] = ti.Vector([drag, h * h * km * (x[i][1] < self.plane[i]), drag, 0.0])
 
     @ti.kernel
-    def ground_contact(self, x: ti.template(), v: ti.template()):
-        """Friction on the vertices in contact (removes part of the tangential velocity),
-        and no vertex left below the plane."""
+    def body_grounded(self, x: ti.template(), grounded: ti.types.ndarray()):
+        """grounded[b] <- 1 where some vertex of body b is below the ground plane (pressed into it:
+        a body resting on the ground always is, by the penalty's sag), else 0."""
+        ti.loop_config(serialize=True)
+        for b in range(grounded.shape[0]):
+            grounded[b] = 0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             if x[i][1] < self.ground[None]:
-                self.pressed[i] = 1      # caught below the plane: in contact next step
-            if self.contact[i] or x[i][1] < self.ground[None]:
-                x[i][1] = ti.max(x[i][1], self.ground[None])
-                v[i][1] = ti.max(v[i][1], 0.0)
-                v[i][0] *= 1.0 - self.friction[None]
-                v[i][2] *= 1.0 - self.friction[None]
+                grounded[self.model.vertex_body[i]] = 1

@@ -60,8 +60,7 @@ class Solved:
 @ti.data_oriented
 class Newton:
     """Newton's iteration for one model over the parts it drives: `potential` (E, grad E),
-    `linear` (the direction), `rotations` (R at each trial), `effects` (constraints, the
-    ground's first iterate) and `sleep`."""
+    `linear` (the direction), `rotations` (R at each trial), `effects` (constraints) and `sleep`."""
 
     def __init__(self, model, potential, linear, rotations, effects, sleep, switches):
         n, nb = model.capacity.vertices, model.capacity.bodies
@@ -79,16 +78,18 @@ class Newton:
         self.body_momentum = ti.field(ti.f64, nb)
         self.body_speed_floor = ti.field(ti.f64, nb)
 
-    def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner):
+    def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
-        scale: how far the first solve extrapolates the last step's change (dt / dt_prev)."""
+        scale: how far the first solve extrapolates the last step's change (dt / dt_prev).
+        frozen: the rotations stay those of the first iterate (the one-solve step on the ground:
+        E is then quadratic but for the ground's terms, and the iterations find the contacts)."""
         p = self.potential
         p.energy(p.v0, p.x, p.v, h, first=True)              # E_b of every body at the first iterate
-        out = Solved(rho=p.gradient_vertices(p.v0, p.v, h, tolerance, 1))   # its tet terms came with E
+        out = Solved(rho=p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 1))   # its tet terms came with E
         self.accept(p.v, 1)
-        # E is quadratic on linear bodies off the ground: their direction is solved to the
-        # tolerance at once, and one iteration is the answer
-        quadratic = not self.model.any_corotational and not self.effects.has_ground
+        # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the
+        # tolerance at once, and off the ground one iteration is the answer
+        quadratic = frozen or not self.model.any_corotational
         while out.rho > 1.0 and out.newton_iters < settings.max_newton:
             target = 1.0 if quadratic else max(1.0, FORCING ** 2 * out.rho)
             out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
@@ -98,20 +99,20 @@ class Newton:
                 out.settled = True
                 break
             for _ in range(MAX_HALVINGS + 1):
-                out.rotation_ms += self.trial(h, settings)
+                out.rotation_ms += self.trial(h, settings, frozen)
                 p.energy(p.v0, p.x, p.v, h)
                 if self.armijo() == 0:
                     break
                 out.halvings += 1
             else:                                             # some found no decrease at this precision
                 moved = self.give_up()                        # they keep the last iterate
-                out.rotation_ms += self.trial(h, settings)
+                out.rotation_ms += self.trial(h, settings, frozen)
                 if moved == 0:
                     break
                 p.energy(p.v0, p.x, p.v, h)
             self.accept(p.v, 0)
             change = self.velocity_change(settings.newton_tolerance)
-            out.rho = p.gradient_vertices(p.v0, p.v, h, tolerance, 0)   # tet terms: with the last E
+            out.rho = p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 0)   # tet terms: with the last E
             if change <= 1.0:                                 # every body's velocity has settled
                 out.settled = True
                 break
@@ -135,34 +136,24 @@ class Newton:
         self.start_direction(self.potential.v0, int(warm), scale)
         return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner)
 
-    def trial(self, h, settings):
-        """The iterate of each body's own step a_b along d, and its rotations; returns their ms."""
+    def trial(self, h, settings, frozen=False):
+        """The iterate of each body's own step a_b along d, and its rotations (unless frozen);
+        returns their ms."""
         p = self.potential
         self.try_step(p.x0, p.x, p.v, h, 1)
-        if not self.model.any_corotational:                  # linear tets keep R = I
+        if frozen or not self.model.any_corotational:       # linear tets keep R = I
             return 0.0
         ms, _ = self.rotations.update(p.x, settings.rotations == "svd", twist=True)
         return ms
 
     @ti.kernel
-    def start_iterate(self, xn: ti.template(), vn: ti.template(), x0: ti.template(), x: ti.template(),
-                      v: ti.template(), h: float, dt: float):
-        """The first Newton iterate: v = 0, x = x^, except the normal velocity of vertices on the
-        ground, prescribed so that they land on the plane (the ground's active set is chosen here,
-        from the step's start x_n, v_n)."""
+    def start_iterate(self, x0: ti.template(), x: ti.template(), v: ti.template()):
+        """The first Newton iterate: v = 0, x = x^."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            u = ti.Vector.zero(float, 3)
-            if ti.static(self.effects.has_ground):
-                self.effects.contact[i] = 0
-                awake = self.sleep.awake[self.model.vertex_body[i]]
-                if awake and self.model.free[i] > 0 and (xn[i][1] + dt * vn[i][1] < self.effects.ground[None]
-                                                         or self.effects.pressed[i]):
-                    self.effects.contact[i] = 1
-                    u[1] = (self.effects.ground[None] - x0[i][1]) / h
-            self.velocity[i] = u
-            v[i] = u
-            x[i] = x0[i] + h * u
+            self.velocity[i] = ti.Vector.zero(float, 3)
+            v[i] = ti.Vector.zero(float, 3)
+            x[i] = x0[i]
 
     @ti.kernel
     def start_direction(self, v0: ti.template(), warm: ti.i32, scale: float):

@@ -12,9 +12,9 @@ M (v - v^) + h D v - h M g - h f(x) = 0 is the integrator's update, and E's Hess
 
     H = cM M + cK K(R),   cM = 1 + h alpha,  cK = h beta + h^2      (`coefficients`).
 
-The ground is not (yet) a term of E: it is an active set of constraints (fem/implicit/effects.py)
-chosen at the step's start, so E falls along the line search but the ground's own work is
-outside it.
+With a ground, E also has its contact and friction terms (fem/implicit/effects.py): a
+penalty C(x) for vertices below the plane and a lagged friction potential, so the line
+search that lowers E lowers them too. Their Hessian is a 3x3 block per vertex, added to H.
 
 What an integrator defines is its inertia target (x^, v^) and its effective step h
 (fem/implicit/integrators.py): backward Euler x^ = x_n, v^ = v_n, h = dt; BDF2
@@ -95,13 +95,14 @@ class IncrementalPotential:
     def energy(self, v0, x, v, h, first=False):
         """E_b(v) of every body at x = x^ + h v into body_E (J, float64), with the rotations at
         x already extracted, and the tet terms of grad E there (gradient_vertices finishes it).
-        first: the step's first iterate, v = 0 off the ground."""
-        self.energy_vertices(v0, v, h)
-        self.energy_tets(x, v, h, int(not first or self.effects.has_ground))
+        first: the step's first iterate, v = 0."""
+        self.energy_vertices(x, v0, v, h)
+        self.energy_tets(x, v, h, int(not first))
 
     @ti.kernel
-    def energy_vertices(self, v0: ti.template(), v: ti.template(), dt: float):
-        """body_E[b] <- 1/2 |v_b - v^|_M^2 + dt alpha/2 |v_b|_M^2 - dt v_b^T M g, in float64 (J)."""
+    def energy_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt: float):
+        """body_E[b] <- 1/2 |v_b - v^|_M^2 + dt alpha/2 |v_b|_M^2 - dt v_b^T M g + the ground's
+        contact and friction terms, in float64 (J)."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_E[b] = 0.0
@@ -112,6 +113,8 @@ class IncrementalPotential:
             e = 0.5 * m * ((u - u0).norm_sqr() + dt * self.effects.mass_damping[None] * u.norm_sqr())
             if ti.static(self.has_gravity):
                 e -= dt * m * u.dot(ti.cast(self.effects.gravity_vector(), ti.f64))
+            if ti.static(self.effects.has_ground):
+                e += self.effects.step_contact_energy(i, x[i]) + self.effects.friction_energy(i, v[i], dt)
             self.body_E[self.model.vertex_body[i]] += e
 
     @ti.kernel
@@ -145,13 +148,13 @@ class IncrementalPotential:
 
     def gradient(self, v0, x, v, h, tolerance, first):
         """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1)."""
-        self.gradient_corners(x, v, h, int(not first or self.effects.has_ground))   # first: v = 0 off the ground
-        return self.gradient_vertices(v0, v, h, tolerance, int(first))
+        self.gradient_corners(x, v, h, int(not first))   # first: v = 0
+        return self.gradient_vertices(x, v0, v, h, tolerance, int(first))
 
     @ti.kernel
     def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
         """corner <- the tet terms of grad E: -dt f_e(x) + dt beta (K(R) v)_e.
-        moving=0: v is 0 (the step's first iterate, no ground), so the damping term is too."""
+        moving=0: v is 0 (the step's first iterate), so the damping term is too."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             self.gradient_tet(x, v, dt, moving, e)
@@ -176,11 +179,11 @@ class IncrementalPotential:
         return B
 
     @ti.kernel
-    def gradient_vertices(self, v0: ti.template(), v: ti.template(), dt: float, tolerance: ti.f64,
-                          first: ti.i32) -> ti.f64:
-        """rhs <- -grad E = M v^ + dt M g - (1 + dt alpha) M v - (gathered tet terms), and the
-        per-body |grad_b|^2; on the step's first call also the per-body scale s_b^2.
-        Returns `gradient_norm`."""
+    def gradient_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt: float,
+                          tolerance: ti.f64, first: ti.i32) -> ti.f64:
+        """rhs <- -grad E = M v^ + dt M g - (1 + dt alpha) M v - (gathered tet terms) + (the
+        ground's), and the per-body |grad_b|^2; on the step's first call also the per-body
+        scale s_b^2. Returns `gradient_norm`."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_gradient[b] = 0.0
@@ -193,6 +196,8 @@ class IncrementalPotential:
             if ti.static(self.has_gravity):
                 g = dt * m * self.effects.gravity_vector()
             tets = self.elasticity.gather(i)
+            if ti.static(self.effects.has_ground):       # with gravity's impulse in the step's scale
+                g += self.effects.contact_force(i, x[i], v[i], dt)
             rhs = m * v0[i] + g - (1.0 + dt * self.effects.mass_damping[None]) * m * v[i] - tets
             self.rhs[i] = rhs
             b = self.model.vertex_body[i]
@@ -226,5 +231,9 @@ class IncrementalPotential:
 
     @ti.func
     def apply_H(self, i, u: ti.template(), cM, cK):
-        """(H u)_i = cM m_i u_i + cK (K u)_i, filtered; K u gathered from the elasticity's corners."""
-        return self.effects.filtered(i, cM * self.model.mass[i] * u[i] + cK * self.elasticity.gather(i))
+        """(H u)_i = cM m_i u_i + cK (K u)_i (+ the ground's block), filtered; K u gathered from
+        the elasticity's corners."""
+        Hu = cM * self.model.mass[i] * u[i] + cK * self.elasticity.gather(i)
+        if ti.static(self.effects.has_ground):
+            Hu += self.effects.contact_product(i, u)
+        return self.effects.filtered(i, Hu)

@@ -1,7 +1,7 @@
 """PCG's preconditioner: block Jacobi, plus the coarse level of fem/coarse.py on large meshes.
 
-Block Jacobi keeps the inverse 3x3 diagonal blocks of H = cM M + cK K(R), built from every
-corner around a vertex; the two-level preconditioner adds the rigid patches' correction,
+Block Jacobi keeps the inverse 3x3 diagonal blocks of H = cM M + cK K(R) (plus the ground's
+own block, fem/implicit/effects.py), built from every corner around a vertex; the two-level preconditioner adds the rigid patches' correction,
 
     z = P r = D^-1 r + Q A_c^-1 Q^T r          (fem/coarse.py),
 
@@ -119,6 +119,8 @@ class Preconditioner:
                 block += cK * (stiffness_block(h, W, self.model.mu(e), self.model.lam(e))
                                + 0.5 * W * self.rotations.twist[e] * (h.dot(h) * ti.Matrix.identity(float, 3)
                                                                       - h.outer_product(h)))
+            if ti.static(self.effects.has_ground):
+                block += self.effects.contact_block(i)
             inv = block.inverse()
             self.block_inverse[i] = ti.Vector([inv[0, 0], inv[0, 1], inv[0, 2],
                                                inv[1, 1], inv[1, 2], inv[2, 2]])

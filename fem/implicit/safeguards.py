@@ -89,7 +89,8 @@ class Safeguards:
 
     @ti.kernel
     def body_energy(self, x: ti.template(), v: ti.template(), when: ti.i32):
-        """body_total[when, b] <- kinetic + elastic + gravitational energy of body b (J, float64),
+        """body_total[when, b] <- kinetic + elastic + gravitational (+ the ground's contact) energy
+        of body b (J, float64),
         elastic with the rotations extracted at x; body_total_size[when, b] <- the sum of the
         sizes of its terms (J), the scale of its round-off. when: BEFORE or AFTER the step."""
         ti.loop_config(serialize=True)
@@ -117,6 +118,8 @@ class Safeguards:
             kinetic, potential = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr(), ti.cast(0.0, ti.f64)
             if ti.static(self.has_gravity):
                 potential = -m * ti.cast(self.effects.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
+            if ti.static(self.effects.has_ground):
+                kinetic += self.effects.contact_energy(i, x[i])      # stored in the ground's penalty
             self.body_total[when, self.model.vertex_body[i]] += kinetic + potential
             self.body_total_size[when, self.model.vertex_body[i]] += kinetic + ti.abs(potential)
 
@@ -124,7 +127,8 @@ class Safeguards:
     def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt: float) -> ti.i32:
         """Scale v - v_cm of every body whose energy rose (v_cm = 0 for pinned bodies) so that
         its kinetic energy falls by the rise. Where the rise exceeds that kinetic energy (a body
-        nearly at rest in a non-convex state), the body stays where it was (x0), at rest.
+        nearly at rest in a non-convex state), the body stays where it was (x0), moving on with
+        its centre's velocity when no external force could have raised it (else at rest).
         Returns how many bodies were limited."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
@@ -161,7 +165,9 @@ class Safeguards:
         for i in range(self.model.vertex_count[None]):
             b = self.model.vertex_body[i]
             if self.body_kinetic[b] < 0.0:
-                c = ti.cast(self.centre_velocity(b), float) * self.model.free[i]
+                c = ti.Vector.zero(float, 3)       # gravity or the ground may have sped the centre up
+                if ti.static(not (self.has_gravity or self.effects.has_ground)):
+                    c = ti.cast(self.centre_velocity(b), float) * self.model.free[i]
                 x[i], v[i] = x0[i] + dt * c, c
             elif self.body_kinetic[b] < 1.0:
                 c = self.centre_velocity(b)

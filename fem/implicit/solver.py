@@ -3,7 +3,7 @@
 The solver makes its parts once per Model and `Switches` (fem/pool.py) and hands each the
 parts it reads; each part owns its fields and kernels (fem/implicit/__init__.py lists them).
 What the step remembers between steps: the rotations (warm starts), the last velocity
-change (the first guess), the ground's contacts and which bodies sleep.
+change (the first guess), the integrator's history and which bodies sleep.
 """
 
 import math
@@ -126,24 +126,28 @@ class ImplicitSolver:
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE)                # x, v = x_n, v_n still
         self.history.apply(target, p)                                   # x^, v^ (backward Euler: x_n, v_n)
-        self.newton.start_iterate(state_in.x, state_in.v, p.x0, p.x, p.v, h, dt)   # chooses the ground's contacts
+        self.newton.start_iterate(p.x0, p.x, p.v)
         if target.b != 0.0:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
-        exact = (newton and corotational) or settings.method != "pcg"     # linear: H never changes
+        if ground:
+            self.effects.start_contacts(state_in.x, p.x, h, dt)         # friction's normal forces at x_n
+        # the blocks follow H: every step where the rotations or the contacts change it
+        exact = (newton and corotational) or settings.method != "pcg" or ground
         self.preconditioning.update(p.x, cM, cK, turned, corotational, exact=exact, reuse=not exact,
                                     two_level=self.preconditioner == "two-level")
 
-        # minimise E: Newton with a line search per body, or the one-solve step
-        solve = self.newton.solve if newton else self.newton.one_solve
-        solved = solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
+        # minimise E: Newton with a line search per body, or the one-solve step (on the ground:
+        # Newton with the rotations of the first iterate, to find the contacts)
+        if newton:
+            solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
+        elif ground and not model.any_naive:
+            solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner, frozen=True)
+        else:
+            solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
-        # the ground's reaction, then the safeguards: finite, momentum, energy
-        if ground:
-            self.effects.ground_reaction(p.rhs, self.linear.solution, cM, cK, newton)
+        # the safeguards: finite, momentum (where no ground pushes), energy
         finite = self.safeguards.check_finite(p.x, p.v) == 0 and math.isfinite(solved.rho)
         limited = 0
-        if finite and ground:
-            self.effects.ground_contact(p.x, p.v)
         if finite and not ground:
             self.safeguards.restore_momentum(p.v0, p.x0, p.x, p.v, h)
         if finite and newton:
@@ -175,6 +179,7 @@ class ImplicitSolver:
         assert Switches.of(effects, model.n_vertices, model.n_tets, model.has_pins) == self.switches
         self.settings = settings
         self.effects.load(effects)
+        self.effects.set_dt(settings.dt)
         # the per-body inputs of the kernels, kept here and written together (write_bodies)
         self.pinned_np = np.array([(model.free_np[b.vertices] == 0).any() for b in model.bodies], np.int32)
         self.awake_np = np.ones(len(model.bodies), np.int32)
@@ -185,11 +190,11 @@ class ImplicitSolver:
         self.reset()
 
     def reset(self):
-        """Forget everything from earlier steps: rotations, warm starts, ground contacts, the
-        integrator's history, sleep."""
+        """Forget everything from earlier steps: rotations, warm starts, the integrator's
+        history, sleep."""
         self.wake(np.ones(len(self.model.bodies)))
         self.rotations.unrotate()
-        self.forget_change(contacts=True)
+        self.forget_change()
         self.preconditioning.reset()
 
     def wake(self, awake):
@@ -198,11 +203,10 @@ class ImplicitSolver:
         self.write_bodies()
         self.preconditioning.rebuild()                        # a body that wakes has no blocks yet
 
-    def forget_change(self, contacts=False):
+    def forget_change(self):
         """The next step starts its solve from v_n itself, and a two-step integrator starts
-        again: after a new state, the last step says nothing about the next one.
-        contacts: forget the ground's too."""
-        self.clear_history(int(contacts))
+        again: after a new state, the last step says nothing about the next one."""
+        self.clear_change()
         self.history.forget()
         self.preconditioning.forget()                         # the blocks are for other rotations
         self.last_dt = 0.0                                    # s, the dt of the step that made the change
@@ -214,6 +218,7 @@ class ImplicitSolver:
             self.model_version = (self.model.version, h, dt)
             self.preconditioning.rebuild()
             self.linear.forget_weight()
+            self.effects.set_dt(dt)
             self.floor_np = self.model.body_floor(ROUNDOFF * epsilon(), h)
             self.speed_floor_np = self.model.body_speed_floor(ROUNDOFF * epsilon(), h)
             self.write_bodies()
@@ -253,14 +258,11 @@ class ImplicitSolver:
             self.potential.body_floor[b], self.newton.body_speed_floor[b] = floor[b], speed_floor[b]
 
     @ti.kernel
-    def clear_history(self, contacts: ti.i32):
-        """The last step's velocity change <- 0; with contacts, which vertices the ground pressed too."""
+    def clear_change(self):
+        """The last step's velocity change <- 0."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             self.newton.change[i] = ti.Vector.zero(float, 3)
-            if ti.static(self.switches.ground):
-                if contacts:
-                    self.effects.pressed[i] = 0
 
     @ti.kernel
     def finish(self, x: ti.template(), v: ti.template(), good: ti.i32):
