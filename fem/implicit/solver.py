@@ -220,7 +220,8 @@ class ImplicitSolver:
             self.linear.forget_weight()
             self.effects.set_dt(dt)
             self.floor_np = self.model.body_floor(ROUNDOFF * epsilon(), h)
-            self.speed_floor_np = self.model.body_speed_floor(ROUNDOFF * epsilon(), h)
+            # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
+            self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
             self.write_bodies()
             if not self.model.any_corotational and self.rotations.rotated:
                 self.rotations.unrotate()                     # every body switched to linear
