@@ -14,7 +14,7 @@ import taichi as ti
 
 import fem
 from app.bench import direct
-from app.bench.conclusions import final_error
+from app.bench.conclusions import final_error, observed_orders, reference_floor
 from app.bench.plan import (BASELINE_TOLERANCE, MAX_ITERATIONS, MIN_TIMED_STEPS, REFERENCE_SETTINGS, REFERENCES,
                             checkpoint_times, direct_backends, make_scene, variants)
 
@@ -29,7 +29,7 @@ def field_bytes(*objects):
 def configure(sim, variant):
     """Set the engine up for a variant and go back to t = 0."""
     settings = replace(sim.scene.solver, dt=variant.dt(sim.scene.solver.dt), step=variant.step,
-                       method="pcg", max_iterations=MAX_ITERATIONS)
+                       integrator=variant.integrator, method="pcg", max_iterations=MAX_ITERATIONS)
     if variant.solver == "reference":
         settings = replace(settings, **REFERENCE_SETTINGS)
     elif variant.solver == "pcg":
@@ -47,7 +47,7 @@ def configure(sim, variant):
 def warm_up(sim, steps=2):
     """Compile every kernel the variants use, and the measurements, before anything is timed."""
     engine = [v for v in variants() if v.solver != "direct"]
-    for variant in {(v.method, v.solver, v.step): v for v in engine}.values():
+    for variant in {(v.method, v.solver, v.step, v.integrator): v for v in engine}.values():
         configure(sim, variant)
         for _ in range(steps):
             sim.step()
@@ -114,7 +114,8 @@ def summarise(variant, run, reference, sim, times, plan):
         errors[t] = None if x is None else rms(x - reference[t]) / diagonal
     row = {
         "label": f"{variant.name} ({variant.step_name}, dt {dt:g} s)", "name": variant.name,
-        "method": variant.method, "solver": variant.solver, "step": variant.step, "dt": dt,
+        "method": variant.method, "solver": variant.solver, "step": variant.step,
+        "integrator": variant.integrator, "dt": dt,
         "dt_factor": variant.dt_factor, "tolerance": variant.tolerance or None,
         "iterations": variant.iterations or None,
         "steps": len(infos), "timed_steps": len(timed), "stopped_early": run["stopped_early"],
@@ -218,10 +219,12 @@ def measure_scene(ref, plan, args, progress):
         progress.update()
     progress.set_description(f"{ref}: preconditioners")
     preconditioners = compare_preconditioners(scene, plan.preconditioner_steps)
-    return {"name": ref, "description": scene.description, "tets": sim.model.n_tets,
-            "vertices": sim.model.n_vertices, "dt": scene.solver.dt, "reference_dt": rows[0]["dt"],
-            "reference_floor": final_error(rows[1]), "checkpoints": times, "variants": rows,
-            "preconditioners": preconditioners}
+    out = {"name": ref, "description": scene.description, "tets": sim.model.n_tets,
+           "vertices": sim.model.n_vertices, "dt": scene.solver.dt, "reference_dt": rows[0]["dt"],
+           "reference_difference": final_error(rows[1]), "reference_floor": reference_floor(rows[1]),
+           "checkpoints": times, "variants": rows, "preconditioners": preconditioners}
+    out["observed_order"] = observed_orders(out)
+    return out
 
 
 # ---------------------------------------------------------------- the machine
