@@ -2,8 +2,8 @@
 
 Every scene first runs a reference: corotational BDF2 (second order) at a small time step
 (dt_ref = the scene's dt / 8, 0.0025 s for the seed scenes), Newton iterated to 1e-10
-with PCG at 1e-10 and SVD rotations, always in float64. Then every variant runs from
-the same start for the same simulated time:
+(or until its velocity settles to 1e-8) with PCG at 1e-10, always in float64. Then every
+variant runs from the same start for the same simulated time:
 
     corotational, Newton step and one-solve ("single") step, backward Euler, each with
         PCG 1e-4 at dt = 2, 1, 1/2, 1/4 x the scene's dt     (the dt axis)
