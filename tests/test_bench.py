@@ -5,6 +5,7 @@ Timings are never asserted: they are what the benchmark measures.
 """
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -72,18 +73,33 @@ def test_bench_has_every_variant_once_with_an_error(bench_output):
         assert not row["stopped_early"] and row["ms_median"] > 0 and row["bytes_per_tet"] > 0
 
 
-def test_the_reference_is_bdf2_and_its_floor_a_third_of_its_distance_to_2_dt_ref(bench_output):
-    """Error 0 against itself; BDF2 is second order, so the run at 2 dt_ref is 4 times as wrong and the
-    two differ by 3 times the reference's own error, the floor the scene reports."""
+def test_the_reference_is_bdf2_and_its_floor_comes_from_its_own_order(bench_output):
+    """Error 0 against itself. Its twins at 2 and 4 dt_ref give its own order p: on the spinning bar about
+    BDF2's 2, so the run at 2 dt_ref is 4 times as wrong and differs from it by 3 times its own error,
+    the floor the scene reports."""
     scene, rows = rows_of(bench_output)
-    reference, doubled = rows[:2]
-    assert reference["integrator"] == doubled["integrator"] == "bdf2" and reference["step"] == "newton"
-    assert reference["dt"] == pytest.approx(scene["dt"] / 8) and doubled["dt"] == pytest.approx(scene["dt"] / 4)
+    reference, doubled, quadrupled = rows[:3]
+    assert {r["integrator"] for r in rows[:3]} == {"bdf2"} and {r["step"] for r in rows[:3]} == {"newton"}
+    for row, k in zip(rows[:3], (1, 2, 4)):
+        assert row["dt"] == pytest.approx(k * scene["dt"] / 8)
     assert all(e == 0 for e in reference["errors"].values())
     assert 0 < doubled["errors"]["0.08"] < doubled["errors"]["0.2"] == scene["reference_difference"]
-    assert scene["reference_floor"] == pytest.approx(scene["reference_difference"] / 3)
+    assert doubled["errors"]["0.2"] < quadrupled["errors"]["0.2"]
+    p = scene["reference_order"]
+    assert p == pytest.approx(math.log2(scene["twins_difference"] / scene["reference_difference"]))
+    assert 1.7 < p < 2.3
+    assert scene["reference_floor"] == pytest.approx(scene["reference_difference"] / (2 ** min(p, 2) - 1))
     md = (bench_output / "results.md").read_text()
-    assert f"reference floor {scene['reference_floor']:.1e}" in md
+    assert f"reference floor {scene['reference_floor']:.1e}" in md and f"its own order {p:.2f}" in md
+
+
+def test_a_reference_slower_than_its_integrator_gets_a_larger_floor():
+    """First order (the twins 2 times as far apart): the floor is the whole distance; faster than second
+    order is luck, counted as 2; slower than MIN_REFERENCE_ORDER is counted as that."""
+    order = conclusions.reference_order(1e-3, 2e-3)
+    assert order == pytest.approx(1) and conclusions.reference_floor(1e-3, order) == pytest.approx(1e-3)
+    assert conclusions.reference_floor(1e-3, conclusions.reference_order(1e-3, 8e-3)) == pytest.approx(1e-3 / 3)
+    assert conclusions.reference_floor(1e-3, 0.1) == pytest.approx(1e-3 / (2 ** conclusions.MIN_REFERENCE_ORDER - 1))
 
 
 def dt_axis(rows, step, integrator):
@@ -204,7 +220,7 @@ def test_an_f32_bench_takes_its_reference_in_f64_and_comes_back(bench_output, tm
     args = main.build_parser().parse_args(["bench", "--out", str(tmp_path), "--precision", "f32"])
     fem.init("cpu", "f32")
     with tqdm(disable=True) as progress:
-        rows, reference = measure.measure_references(plan.make_scene("box80"), [0.08], plan.TEST, args, progress)
+        rows, reference, _ = measure.measure_references(plan.make_scene("box80"), [0.08], plan.TEST, args, progress)
     assert fem.runtime.current()["precision"] == "f32"
     assert reference["0.08"].dtype == np.float64
     _, rows64 = rows_of(bench_output)

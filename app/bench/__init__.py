@@ -19,15 +19,18 @@ variant runs from the same start for the same simulated time:
         dt axis at PCG 1e-4 (its tolerances and solvers would repeat backward Euler's)
 
 A variant's error is its RMS position distance to the reference at checkpoint times
-that every dt divides. The reference has an error of its own, O(dt_ref^2) for BDF2: a
-second run at 2 dt_ref is 4 times as wrong, so the two differ by about 3 times the
-reference's error, and that difference over 3 is the reference's floor. The error axis
-bottoms out there: a measured error is the true one give or take the floor, so a variant
-meets the error goal only when its error plus the floor does. (The backward-Euler
-reference this replaced was first order: its floor, as large as its distance to the run
-at 2 dt_ref, came close to the smallest errors of the dt axis on the spinning bars.)
-Each integrator's observed order is the slope of log error against log dt over its dt
-axis: about 1 for backward Euler, 2 for BDF2 where dt resolves the motion.
+that every dt divides. The reference has an error of its own, C dt_ref^p with p = 2 for
+BDF2 where dt_ref resolves the motion. Two more runs, at 2 and 4 dt_ref, measure p: they
+differ from each other 2^p times as much as the first differs from the reference. The
+reference's floor, its own error, is that first difference over 2^p - 1 (3 for p = 2),
+p taken at most 2 and at least 1/2 (ground contact, an impulsive start or a torsional
+wave slow it down on some scenes). The error axis bottoms out there: a measured error is
+the true one give or take the floor, so a variant meets the error goal only when its
+error plus the floor does. (The backward-Euler reference this replaced was first order:
+its floor, as large as its distance to the run at 2 dt_ref, came close to the smallest
+errors of the dt axis on the spinning bars.) Each integrator's observed order is the slope
+of log error against log dt over its dt axis: about 1 for backward Euler, 2 for BDF2
+where dt resolves the motion.
 
 A variant's cost is the wall time of a step, measured after warm-up (Taichi compiles
 its kernels on first use), and the wall time per simulated second (ms per step / dt),

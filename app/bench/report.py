@@ -4,7 +4,7 @@ preconditioners, one table per scene), results.json (every number) and the plot.
 import json
 from pathlib import Path
 
-from app.bench.conclusions import (ORDER_MARGIN, baseline, corotation_cost, direct_comparison, find, fmt, final_error,
+from app.bench.conclusions import (MIN_REFERENCE_ORDER, ORDER_MARGIN, baseline, corotation_cost, direct_comparison, find, fmt, final_error,
                                    frontier, goal_dt)
 from app.bench.measure import PRECONDITIONER_TOLERANCE
 from app.bench.plan import (BASELINE_TOLERANCE, ERROR_GOAL, INTEGRATORS, REFERENCE_ORDER, REFERENCE_REFINEMENT,
@@ -25,25 +25,25 @@ def explanation(results):
     """Two paragraphs: the reference and what its error floor means; the columns."""
     plan = results["plan"]
     settings = REFERENCE_SETTINGS
-    integrator, factor = INTEGRATORS[settings["integrator"]], 2 ** REFERENCE_ORDER - 1
+    integrator, order = INTEGRATORS[settings["integrator"]], REFERENCE_ORDER
     reference = (
         f"Each run starts from the same state and runs to the last checkpoint. **The reference** is corotational "
-        f"{integrator} (order {REFERENCE_ORDER}) at dt_ref = the scene's dt / {REFERENCE_REFINEMENT}: Newton until "
-        f"every body's gradient is under {sci(settings['tolerance'])} of the step's own terms, or an iteration "
-        f"changes its velocity by under {sci(settings['newton_tolerance'])} of its size (at most "
-        f"{settings['max_newton']} iterations), PCG to {sci(settings['tolerance'])}, rotations certified to "
-        "1e-12 rad, in float64 whatever the variants' precision (so its timings are f64's); its first step, with no history yet, is backward "
-        f"Euler's. Its own error is O(dt_ref^{REFERENCE_ORDER}): *{integrator} reference at 2 dt_ref*, the same at "
-        f"twice that dt, is about {2 ** REFERENCE_ORDER} times as wrong, so the two differ by about {factor} times "
-        f"the reference's error. That difference over {factor} is the *reference floor*, where the error axis "
-        "bottoms out: a measured error is the true one give or take the floor, so a run meets the goal of "
-        f"{100 * ERROR_GOAL:g} % of the scene size only when its error plus the floor does. (Where a scene's "
-        f"{integrator} runs are not yet of order {REFERENCE_ORDER}, as with ground contact, the floor may be up to "
-        f"{factor} times more: compare its observed order. A backward-Euler reference at the same dt_ref, first "
-        "order, had a floor as large as the difference itself, close to the smallest errors of the dt axis on "
-        "the spinning bars.) *Observed order*: the slope of log error against log dt over a dt axis (least "
-        f"squares, leaving out errors under {ORDER_MARGIN} times the floor): about 1 for backward Euler and 2 for "
-        "BDF2 where dt resolves the motion.")
+        f"{integrator} (order {order}) at dt_ref = the scene's dt / {REFERENCE_REFINEMENT}: Newton until every "
+        f"body's gradient is under {sci(settings['tolerance'])} of the step's own terms, or an iteration changes "
+        f"its velocity by under {sci(settings['newton_tolerance'])} of its size (at most {settings['max_newton']} "
+        f"iterations), PCG to {sci(settings['tolerance'])}, rotations certified to 1e-12 rad, in float64 whatever "
+        "the variants' precision (so its timings are f64's); its first step, with no history yet, is backward "
+        f"Euler's. Its own error is C dt_ref^p: *{integrator} reference at 2 dt_ref* and *at 4 dt_ref*, the same at "
+        "twice and four times that dt, differ from each other 2^p times as much as the first differs from the "
+        "reference, which gives p, the reference's own order (*its order*). The *reference floor*, its error, is its "
+        f"distance to the run at 2 dt_ref over 2^p - 1 (3 for p = {order}), p taken at most {order} and at least "
+        f"{MIN_REFERENCE_ORDER:g} (with ground contact {integrator} converges more slowly). The error axis bottoms "
+        "out there: a measured error is the true one give or take the floor, so a run meets the goal of "
+        f"{100 * ERROR_GOAL:g} % of the scene size only when its error plus the floor does. (A backward-Euler "
+        "reference at the same dt_ref, first order, had a floor as large as that distance, close to the smallest "
+        "errors of the dt axis on the spinning bars.) *Observed order*: the slope of log error against log dt over "
+        f"a dt axis (least squares, leaving out errors under {ORDER_MARGIN} times the floor): about 1 for backward "
+        "Euler and 2 for BDF2 where dt resolves the motion.")
     columns = (
         "*step*: Newton (iterated until the velocity settles to the scene's newton_tolerance) or single (one "
         "linear solve with the rotations of the step's start); a linear body's step is exact either way. "
@@ -94,7 +94,8 @@ def markdown(results):
         lines += ["", f"## {s['name']}", "",
                   f"{s['description']} {s['tets']} tets, {s['vertices']} vertices, scene dt {s['dt']:g} s, "
                   f"dt_ref {s['reference_dt']:g} s, reference floor {s['reference_floor']:.1e} (its distance to the "
-                  f"run at 2 dt_ref, {s['reference_difference']:.1e}, over {2 ** REFERENCE_ORDER - 1}).", "",
+                  f"run at 2 dt_ref, {s['reference_difference']:.1e}, over 2^p - 1; its own order "
+                  f"{s['reference_order']:.2f}).", "",
                   "| variant | step | dt (s) | s/sim s | ms/step | min-max | Newton | iters | ns/tet/iter | rot ms "
                   "| halvings | E-limited | B/tet | " + " | ".join(times) + " | vol | energy |",
                   "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(times)
@@ -220,15 +221,16 @@ def targets(results):
 def integrator_table(scenes):
     """Per scene: the reference's floor, each integrator's observed order, and BDF2 against backward Euler."""
     lines = ["", "## Integrators and the reference's floor", "",
-             f"Corotational, PCG {sci(BASELINE_TOLERANCE)}. *floor*: the reference's own error, its distance to the "
-             f"run at 2 dt_ref over {2 ** REFERENCE_ORDER - 1}; *order*: the slope of log error against log dt over "
-             f"the dt axis (–: fewer than two errors above {ORDER_MARGIN} times the floor); *BDF2 / BE*: BDF2's "
-             "error and time per simulated second over backward Euler's, at the scene's dt; the largest dt of "
-             "BDF2's dt axis whose error plus the floor is within the goal.", "",
-             "| scene | dt_ref (s) | distance at 2 dt_ref | floor | order, backward Euler Newton | single "
+             f"Corotational, PCG {sci(BASELINE_TOLERANCE)}. *its order*: the reference's own, from its runs at 2 and "
+             "4 dt_ref; *floor*: the reference's own error, its distance to the run at 2 dt_ref over 2^p - 1; "
+             "*order*: the slope of log error against log dt over the dt axis (–: fewer than two errors above "
+             f"{ORDER_MARGIN} times the floor); *BDF2 / BE*: BDF2's error and time per simulated second over "
+             "backward Euler's, at the scene's dt; the largest dt of BDF2's dt axis whose error plus the floor is "
+             "within the goal.", "",
+             "| scene | dt_ref (s) | distance at 2 dt_ref | its order | floor | order, backward Euler Newton | single "
              "| BDF2 Newton | single | BDF2 / BE error, Newton | single | BDF2 / BE s/sim s, Newton | single "
              "| largest dt within goal, BDF2 Newton | single |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in scenes:
         order = s["observed_order"]
         cells = [fmt(order[i][step], ".2f") for i in INTEGRATORS for step in ("newton", "single")]
@@ -238,7 +240,7 @@ def integrator_table(scenes):
         cells += [fmt(ratio(a["s_per_sim_s"], b["s_per_sim_s"]), ".2f") for a, b in pairs]
         cells += [fmt(goal_dt(s, step, "bdf2"), "g", "none") for step in ("newton", "single")]
         lines.append(f"| {s['name']} | {s['reference_dt']:g} | {s['reference_difference']:.1e} "
-                     f"| {s['reference_floor']:.1e} | " + " | ".join(cells) + " |")
+                     f"| {s['reference_order']:.2f} | {s['reference_floor']:.1e} | " + " | ".join(cells) + " |")
     return lines
 
 
