@@ -99,7 +99,7 @@ def test_a_reference_slower_than_its_integrator_gets_a_larger_floor():
     order = conclusions.reference_order(1e-3, 2e-3)
     assert order == pytest.approx(1) and conclusions.reference_floor(1e-3, order) == pytest.approx(1e-3)
     assert conclusions.reference_floor(1e-3, conclusions.reference_order(1e-3, 8e-3)) == pytest.approx(1e-3 / 3)
-    assert conclusions.reference_floor(1e-3, 0.1) == pytest.approx(1e-3 / (2 ** conclusions.MIN_REFERENCE_ORDER - 1))
+    assert conclusions.reference_floor(1e-3, 0.1) == pytest.approx(1e-3 / (2 ** plan.MIN_REFERENCE_ORDER - 1))
 
 
 def dt_axis(rows, step, integrator):

@@ -7,13 +7,11 @@ from collections import Counter
 
 from app.bench import direct
 from app.bench.plan import (BASELINE_TOLERANCE, DIRECT_TARGET, DIRECT_TOLERANCE, DT_FACTORS, ERROR_GOAL, INTEGRATORS,
-                            PCG_TOLERANCES, REFERENCE_ORDER, REFERENCE_REFINEMENT, REFERENCE_SETTINGS, integrator_of,
-                            sci)
+                            MIN_REFERENCE_ORDER, PCG_TOLERANCES, REFERENCE_ORDER, REFERENCE_REFINEMENT,
+                            REFERENCE_SETTINGS, integrator_of, sci)
 from fem.scene import SolverSettings
 
 ORDER_MARGIN = 10    # the observed order leaves out errors under this many times the reference's floor
-MIN_REFERENCE_ORDER = 0.5   # a reference whose own runs converge slower is given this order: a floor 2.4 times
-                            # its distance to the run at 2 dt_ref
 
 # ---------------------------------------------------------------- conclusions
 
@@ -43,8 +41,8 @@ def dt_axis(scene, step, integrator, method="corotational"):
 def reference_order(difference, twins):
     """The reference's own observed order, from `difference`, its distance to the run at 2 dt_ref, and
     `twins`, that run's distance to the one at 4 dt_ref: with an error C dt^p they are C dt_ref^p (2^p - 1)
-    and 2^p times that."""
-    return math.log2(twins / difference)
+    and 2^p times that. (Two runs that agree exactly say nothing: the integrator's order.)"""
+    return math.log2(twins / difference) if difference > 0 and twins > 0 else REFERENCE_ORDER
 
 
 def reference_floor(difference, order):
