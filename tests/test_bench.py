@@ -198,6 +198,7 @@ def test_headline_numbers_say_what_second_order_and_the_default_step_do(bench_ou
     frontier = [r for r in scene["variants"] if r["label"] in conclusions.frontier(scene)]
     for integrator in ("backward-euler", "bdf2"):
         assert integrators["frontier_scenes"][integrator] == any(r["integrator"] == integrator for r in frontier)
+        assert integrators["frontier_points"][integrator] == sum(r["integrator"] == integrator for r in frontier)
     assert f"on the frontier on {default['on_frontier']} of 1 scenes" in results["headline"][2]
 
 

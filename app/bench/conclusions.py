@@ -241,8 +241,9 @@ def second_order(scenes, at_dt):
     newton, single = ratios["newton"], ratios["single"]
     orders = {integrator: {step: median_or_none(observed_order(s, step, integrator) for s in scenes)
                            for step in ("newton", "single")} for integrator in INTEGRATORS}
-    on_frontier = {integrator: sum(any(integrator_of(r) == integrator for r in frontier_rows(s)) for s in scenes)
-                   for integrator in INTEGRATORS}
+    frontiers = [[integrator_of(r) for r in frontier_rows(s)] for s in scenes]
+    on_frontier = {integrator: sum(integrator in f for f in frontiers) for integrator in INTEGRATORS}
+    points = {integrator: sum(f.count(integrator) for f in frontiers) for integrator in INTEGRATORS}
     medians = " (medians)" if n > 1 else ""
     sentence = (f"Second order: BDF2 against backward Euler (corotational, PCG {sci(BASELINE_TOLERANCE)}, {at_dt}): "
                 f"with Newton steps it leaves {fmt(newton['error'], '.2g')} times the error in "
@@ -252,8 +253,10 @@ def second_order(scenes, at_dt):
                 + ", ".join(f"{INTEGRATORS[i]} {fmt(o['newton'], '.2f')} and {fmt(o['single'], '.2f')}"
                             for i, o in orders.items())
                 + f"{medians}. On the accuracy/time frontier: "
-                + ", ".join(f"{INTEGRATORS[i]} on {k} of {n} scenes" for i, k in on_frontier.items()) + ".")
-    return sentence, {"bdf2_over_backward_euler": ratios, "observed_order": orders, "frontier_scenes": on_frontier}
+                + ", ".join(f"{INTEGRATORS[i]} on {k} of {n} scenes ({points[i]} of the {sum(points.values())} "
+                            "points)" for i, k in on_frontier.items()) + ".")
+    return sentence, {"bdf2_over_backward_euler": ratios, "observed_order": orders, "frontier_scenes": on_frontier,
+                      "frontier_points": points}
 
 
 def default_step_numbers(scenes, at_dt):
