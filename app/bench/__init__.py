@@ -1,11 +1,11 @@
 """`main.py bench`: what accuracy costs in time.
 
-Every scene first runs a reference: corotational backward Euler at a small time step
+Every scene first runs a reference: corotational BDF2 (second order) at a small time step
 (dt_ref = the scene's dt / 8, 0.0025 s for the seed scenes), Newton iterated to 1e-10
-with PCG at 1e-10 and SVD rotations, always in float64. Then every variant runs from
-the same start for the same simulated time:
+(or until its velocity settles to 1e-8) with PCG at 1e-10, always in float64. Then every
+variant runs from the same start for the same simulated time:
 
-    corotational, Newton step and one-solve ("single") step, each with
+    corotational, Newton step and one-solve ("single") step, backward Euler, each with
         PCG 1e-4 at dt = 2, 1, 1/2, 1/4 x the scene's dt     (the dt axis)
         PCG 1e-2, 1e-3, 1e-6 at the scene's dt               (the tolerance axis)
     linear: the same, once (one Newton iteration solves a linear body exactly)
@@ -15,17 +15,22 @@ the same start for the same simulated time:
             the fastest installed (MKL PARDISO with the fast-direct extra), its analysis of the
             pattern made once and the matrix refactorised every step, and SuperLU, from
             scratch every step (the coursework's way)
+    BDF2 (the integrator axis): corotational Newton and one-solve steps, and linear, over the
+        dt axis at PCG 1e-4 (its tolerances and solvers would repeat backward Euler's)
 
 A variant's error is its RMS position distance to the reference at checkpoint times
-that every dt divides. The reference has an error of its own, O(dt_ref) like any
-backward Euler run: the distance between it and a second run at 2 dt_ref estimates
-it (for a first-order method the two differ by about the reference's own error). That
-floor is where the error axis bottoms out; errors near it are measured too low (a variant
-at dt shows about (dt - dt_ref) / dt of its true error, half of it at dt = 2 dt_ref), so a
-variant meets the error goal only when its error plus the floor does. dt_ref = the
-smallest variant dt / 8 would lower the floor 4 times, but the reference, already the
-dearest run of a scene, would cost 4 times more: the scene's dt / 8 keeps a full run
-affordable.
+that every dt divides. The reference has an error of its own, C dt_ref^p with p = 2 for
+BDF2 where dt_ref resolves the motion. Two more runs, at 2 and 4 dt_ref, measure p: they
+differ from each other 2^p times as much as the first differs from the reference. The
+reference's floor, its own error, is that first difference over 2^p - 1 (3 for p = 2),
+p taken at most 2 and at least 1/2 (ground contact, an impulsive start or a torsional
+wave slow it down on some scenes). The error axis bottoms out there: a measured error is
+the true one give or take the floor, so a variant meets the error goal only when its
+error plus the floor does. (The backward-Euler reference this replaced was first order:
+its floor, as large as its distance to the run at 2 dt_ref, came close to the smallest
+errors of the dt axis on the spinning bars.) Each integrator's observed order is the slope
+of log error against log dt over its dt axis: about 1 for backward Euler, 2 for BDF2
+where dt resolves the motion.
 
 A variant's cost is the wall time of a step, measured after warm-up (Taichi compiles
 its kernels on first use), and the wall time per simulated second (ms per step / dt),

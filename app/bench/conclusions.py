@@ -1,12 +1,17 @@
 """What the benchmark's rows say: errors against the reference, the error goal, the cheapest run
 within it, the direct baseline, and the headline sentences."""
 
+import math
 import statistics
 from collections import Counter
 
 from app.bench import direct
-from app.bench.plan import (BASELINE_TOLERANCE, DIRECT_TARGET, DIRECT_TOLERANCE, DT_FACTORS, ERROR_GOAL,
-                            PCG_TOLERANCES, REFERENCE_REFINEMENT, sci)
+from app.bench.plan import (BASELINE_TOLERANCE, DIRECT_TARGET, DIRECT_TOLERANCE, DT_FACTORS, ERROR_GOAL, INTEGRATORS,
+                            MIN_REFERENCE_ORDER, PCG_TOLERANCES, REFERENCE_ORDER, REFERENCE_REFINEMENT,
+                            REFERENCE_SETTINGS, integrator_of, sci)
+from fem.scene import SolverSettings
+
+ORDER_MARGIN = 10    # the observed order leaves out errors under this many times the reference's floor
 
 # ---------------------------------------------------------------- conclusions
 
@@ -19,11 +24,49 @@ def final_error(row):
     return list(row["errors"].values())[-1]
 
 
-def baseline(scene, method, step, solver="pcg"):
+def baseline(scene, method, step, solver="pcg", integrator="backward-euler"):
     """The row at the scene's dt with the default tolerance (PCG), or the solver alone (direct: the fastest)."""
     if solver != "pcg":
         return find(scene, method=method, solver=solver)
-    return find(scene, method=method, solver="pcg", step=step, dt_factor=1, tolerance=BASELINE_TOLERANCE)
+    return find(scene, method=method, solver="pcg", step=step, integrator=integrator, dt_factor=1,
+                tolerance=BASELINE_TOLERANCE)
+
+
+def dt_axis(scene, step, integrator, method="corotational"):
+    """The rows of the dt axis (PCG at the default tolerance), largest dt first."""
+    return [find(scene, method=method, solver="pcg", step=step, integrator=integrator, dt_factor=f,
+                 tolerance=BASELINE_TOLERANCE) for f in DT_FACTORS]
+
+
+def reference_order(difference, twins):
+    """The reference's own observed order, from `difference`, its distance to the run at 2 dt_ref, and
+    `twins`, that run's distance to the one at 4 dt_ref: with an error C dt^p they are C dt_ref^p (2^p - 1)
+    and 2^p times that. (Two runs that agree exactly say nothing: the integrator's order.)"""
+    return math.log2(twins / difference) if difference > 0 and twins > 0 else REFERENCE_ORDER
+
+
+def reference_floor(difference, order):
+    """The reference's own error, C dt_ref^p = difference / (2^p - 1), p its observed order, at most its
+    integrator's REFERENCE_ORDER (higher would be luck) and at least MIN_REFERENCE_ORDER."""
+    p = min(max(order, MIN_REFERENCE_ORDER), REFERENCE_ORDER)
+    return difference / (2 ** p - 1)
+
+
+def observed_order(scene, step, integrator):
+    """The slope of log error against log dt over the corotational dt axis (least squares), leaving out
+    errors under ORDER_MARGIN times the reference's floor, which they would mostly measure; None with
+    fewer than two points."""
+    points = [(r["dt"], final_error(r)) for r in dt_axis(scene, step, integrator)
+              if final_error(r) is not None and final_error(r) > ORDER_MARGIN * scene["reference_floor"]]
+    if len(points) < 2:
+        return None
+    return statistics.linear_regression([math.log(dt) for dt, _ in points], [math.log(e) for _, e in points]).slope
+
+
+def observed_orders(scene):
+    """{integrator: {step: observed order}} of the corotational steps."""
+    return {integrator: {step: observed_order(scene, step, integrator) for step in ("newton", "single")}
+            for integrator in INTEGRATORS}
 
 
 def corotation_cost(scene, step, solver="pcg"):
@@ -38,25 +81,35 @@ def meets_goal(row, scene):
     return error is not None and error + scene["reference_floor"] <= ERROR_GOAL
 
 
-def goal_dt(scene, step):
+def goal_dt(scene, step, integrator="backward-euler"):
     """The largest dt of the corotational dt axis (PCG at the default tolerance) that meets the goal."""
-    rows = [find(scene, method="corotational", solver="pcg", step=step, dt_factor=f, tolerance=BASELINE_TOLERANCE)
-            for f in DT_FACTORS]
-    return next((r["dt"] for r in rows if meets_goal(r, scene)), None)
+    return next((r["dt"] for r in dt_axis(scene, step, integrator) if meets_goal(r, scene)), None)
 
 
 def cheapest_to_goal(scene, step):
-    """The corotational PCG row of this step kind that meets the goal in the least time per simulated second."""
+    """The corotational backward-Euler PCG row of this step kind that meets the goal in the least time per
+    simulated second."""
     rows = [r for r in scene["variants"] if r["method"] == "corotational" and r["solver"] == "pcg"
-            and r["step"] == step and meets_goal(r, scene)]
+            and r["step"] == step and integrator_of(r) == "backward-euler" and meets_goal(r, scene)]
     return min(rows, key=lambda r: r["s_per_sim_s"], default=None)
 
 
-def frontier(scene):
+def frontier_rows(scene):
     """Variants no other variant beats in both time per simulated second and accuracy (at the last checkpoint)."""
     rows = [r for r in scene["variants"] if r["solver"] != "reference" and final_error(r) is not None]
-    return [r["label"] for r in sorted(rows, key=lambda r: r["s_per_sim_s"])
+    return [r for r in sorted(rows, key=lambda r: r["s_per_sim_s"])
             if not any(o["s_per_sim_s"] < r["s_per_sim_s"] and final_error(o) <= final_error(r) for o in rows)]
+
+
+def frontier(scene):
+    """The labels of the frontier's rows, fastest first."""
+    return [r["label"] for r in frontier_rows(scene)]
+
+
+def default_step():
+    """(integrator, step) of the engine's default settings, fem.scene.SolverSettings()."""
+    settings = SolverSettings()
+    return settings.integrator, settings.step
 
 
 def direct_comparison(scene):
@@ -64,7 +117,8 @@ def direct_comparison(scene):
     axis lacks 1e-3) against the direct baseline: a sentence, and {solver: direct ms per step / matrix-free ms
     per step} with "factorisation" (the fastest's alone)."""
     tolerance = DIRECT_TOLERANCE if DIRECT_TOLERANCE in PCG_TOLERANCES else BASELINE_TOLERANCE
-    matrix_free = find(scene, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=tolerance)
+    matrix_free = find(scene, method="corotational", solver="pcg", step="single", integrator="backward-euler",
+                       dt_factor=1, tolerance=tolerance)
     rows = [r for r in scene["variants"] if r["method"] == "corotational" and r["solver"] == "direct"]
     ms = matrix_free["ms_median"]
     ratios = {r["backend"]: r["ms_median"] / ms for r in rows}
@@ -79,7 +133,8 @@ def direct_comparison(scene):
     if len(rows) > 1:
         sentence += f", SuperLU {ratios['superlu']:.2g} times ({rows[1]['ms_median']:.3g} ms)"
     exact = fastest if final_error(fastest) is not None else find(     # a direct run stopped by the budget
-        scene, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=min(PCG_TOLERANCES))
+        scene, method="corotational", solver="pcg", step="single", integrator="backward-euler", dt_factor=1,
+        tolerance=min(PCG_TOLERANCES))
     sentence += (f"; the matrix-free step's position error {final_error(matrix_free):.2e}, the exact solve's "
                  f"{final_error(exact):.2e}" + ("" if exact is fastest else f" (at PCG {sci(exact['tolerance'])})"))
     met = "met" if ratios[fastest["backend"]] >= DIRECT_TARGET else "not met"
@@ -119,13 +174,14 @@ def headline(scenes):
     single = [baseline(s, "corotational", "single") for s in scenes]
     time_ratio, times = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in zip(newton, single))
     error_ratio, errors = median_ratio((final_error(a), final_error(b)) for a, b in zip(newton, single))
-    goal = {step: [goal_dt(s, step) for s in scenes] for step in ("newton", "single")}
+    goal = {integrator: {step: [goal_dt(s, step, integrator) for s in scenes] for step in ("newton", "single")}
+            for integrator in INTEGRATORS}
     cheapest = [(cheapest_to_goal(s, "newton"), cheapest_to_goal(s, "single")) for s in scenes]
     pays, pay_ratios = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in cheapest if a and b)
     floors = [s["reference_floor"] for s in scenes]
     numbers = {
         "newton_over_single_time": time_ratio, "newton_over_single_error": error_ratio,
-        "goal_dt": goal,     # per scene, in order: the largest dt meeting the goal (None: none does)
+        "goal_dt": goal,     # {integrator: {step: per scene, in order: the largest dt meeting the goal (None: none)}}
         "cheapest_to_goal_newton_over_single": pays,
         "corotation_cost_single_pct": statistics.median(corotation_cost(s, "single") for s in scenes),
         "corotation_cost_newton_pct": statistics.median(corotation_cost(s, "newton") for s in scenes),
@@ -134,16 +190,22 @@ def headline(scenes):
     }
     over = f"; medians over {n} scenes, {spread(times)} and {spread(errors)} times" if n > 1 else ""
     lines = [f"A correct step costs: Newton takes {fmt(time_ratio, '.2f')} times the wall time per simulated "
-             f"second of the one-solve step and leaves {fmt(error_ratio, '.2f')} times its error (corotational, "
-             f"PCG {sci(BASELINE_TOLERANCE)}, {at_dt}{over})."]
+             f"second of the one-solve step and leaves {fmt(error_ratio, '.2f')} times its error (corotational "
+             f"backward Euler, PCG {sci(BASELINE_TOLERANCE)}, {at_dt}{over})."]
+    sentence, numbers["integrators"] = second_order(scenes, at_dt)
+    lines.append(sentence)
+    sentence, numbers["default_step"] = default_step_numbers(scenes, at_dt)
+    lines.append(sentence)
+    reach = {integrator: f"{INTEGRATORS[integrator]}'s Newton step {where_met(goal[integrator]['newton'])}, its "
+                         f"one-solve step {where_met(goal[integrator]['single'])}" for integrator in INTEGRATORS}
     sentence = (f"Within the error goal ({100 * ERROR_GOAL:g} % of the scene size at t = {last:g} s, the "
-                f"reference's own error counted in), at PCG {sci(BASELINE_TOLERANCE)}: Newton "
-                f"{where_met(goal['newton'])}; the one-solve step {where_met(goal['single'])}.")
+                f"reference's own error counted in), at PCG {sci(BASELINE_TOLERANCE)}: "
+                + "; ".join(reach.values()) + ".")
     if pays is not None:
         both = ("" if n == 1 else f" (median over the {len(pay_ratios)} scenes where both meet it)"
                 if len(pay_ratios) > 1 else " (in the one scene where both meet it)")
-        sentence += (f" The cheapest corotational run within it takes {pays:.2f} times the wall time per simulated "
-                     f"second with Newton as with the one-solve step{both}: "
+        sentence += (f" The cheapest corotational backward-Euler run within it takes {pays:.2f} times the wall time "
+                     f"per simulated second with Newton as with the one-solve step{both}: "
                      + ("Newton pays." if pays < 1 else "Newton does not pay at this goal."))
     lines.append(sentence)
     largest = max(scenes, key=lambda s: s["tets"])
@@ -155,11 +217,72 @@ def headline(scenes):
                  f"{numbers['corotation_cost_direct_pct']:.0f} % with the fastest direct solver"
                  + (" (medians)." if n > 1 else "."))
     dt_ref = f" = {scenes[0]['reference_dt']:g} s" if len(dts) == 1 else ""
-    floor_range = f" (median; {spread(floors, '.1e')})" if n > 1 else ""
-    lines.append(f"The reference (Newton to 1e-10 in f64 at dt_ref = dt / {REFERENCE_REFINEMENT}{dt_ref}) "
-                 f"differs from a run at 2 dt_ref by {numbers['reference_floor']:.1e}{floor_range}: the error "
-                 "axis bottoms out there, and errors near it are measured up to 2 times too low.")
+    orders = [s["reference_order"] for s in scenes]
+    numbers["reference_order"] = statistics.median(orders)
+    ranges = f" (medians; {spread(floors, '.1e')} and {spread(orders)})" if n > 1 else ""
+    lines.append(f"The reference ({INTEGRATORS[REFERENCE_SETTINGS['integrator']]}, Newton to 1e-10 in f64 at "
+                 f"dt_ref = dt / {REFERENCE_REFINEMENT}{dt_ref}) has an error of its own of about "
+                 f"{numbers['reference_floor']:.1e}: its distance to a run at 2 dt_ref over 2^p - 1, p its own "
+                 f"order, {numbers['reference_order']:.2f}, from a third run at 4 dt_ref{ranges}. The error axis "
+                 "bottoms out there: an error measured near it is the true one give or take that much.")
     return lines, numbers
+
+
+def second_order(scenes, at_dt):
+    """What BDF2 buys and costs against backward Euler: a sentence, and its numbers."""
+    n = len(scenes)
+    ratios = {}
+    for step in ("newton", "single"):
+        pairs = [(baseline(s, "corotational", step, integrator="bdf2"), baseline(s, "corotational", step))
+                 for s in scenes]
+        error, _ = median_ratio((final_error(a), final_error(b)) for a, b in pairs)
+        time, _ = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in pairs)
+        ratios[step] = {"error": error, "time": time}
+    newton, single = ratios["newton"], ratios["single"]
+    orders = {integrator: {step: median_or_none(observed_order(s, step, integrator) for s in scenes)
+                           for step in ("newton", "single")} for integrator in INTEGRATORS}
+    frontiers = [[integrator_of(r) for r in frontier_rows(s)] for s in scenes]
+    on_frontier = {integrator: sum(integrator in f for f in frontiers) for integrator in INTEGRATORS}
+    points = {integrator: sum(f.count(integrator) for f in frontiers) for integrator in INTEGRATORS}
+    medians = " (medians)" if n > 1 else ""
+    sentence = (f"Second order: BDF2 against backward Euler (corotational, PCG {sci(BASELINE_TOLERANCE)}, {at_dt}): "
+                f"with Newton steps it leaves {fmt(newton['error'], '.2g')} times the error in "
+                f"{fmt(newton['time'], '.2f')} times the wall time per simulated second, with one-solve steps "
+                f"{fmt(single['error'], '.2g')} times in {fmt(single['time'], '.2f')} times{medians}. Observed order, "
+                "the slope of log error against log dt over the dt axis, Newton and one-solve steps: "
+                + ", ".join(f"{INTEGRATORS[i]} {fmt(o['newton'], '.2f')} and {fmt(o['single'], '.2f')}"
+                            for i, o in orders.items())
+                + f"{medians}. On the accuracy/time frontier: "
+                + ", ".join(f"{INTEGRATORS[i]} on {k} of {n} scenes ({points[i]} of the {sum(points.values())} "
+                            "points)" for i, k in on_frontier.items()) + ".")
+    return sentence, {"bdf2_over_backward_euler": ratios, "observed_order": orders, "frontier_scenes": on_frontier,
+                      "frontier_points": points}
+
+
+def default_step_numbers(scenes, at_dt):
+    """The engine's default step (corotational, PCG at the default tolerance, the scene's dt): on how many
+    scenes it is on the frontier and meets the goal, and its time against backward Euler's one-solve step."""
+    integrator, step = default_step()
+    rows = [baseline(s, "corotational", step, integrator=integrator) for s in scenes]
+    single = [baseline(s, "corotational", "single") for s in scenes]
+    time, times = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in zip(rows, single))
+    numbers = {"integrator": integrator, "step": step, "scenes": len(scenes),
+               "on_frontier": sum(r["label"] in frontier(s) for r, s in zip(rows, scenes)),
+               "meets_goal": sum(meets_goal(r, s) for r, s in zip(rows, scenes)), "time_over_single": time}
+    n = len(scenes)
+    over = f" (median; {spread(times)})" if n > 1 else ""
+    kind = {"newton": "Newton", "single": "one-solve"}[step]
+    sentence = (f"The default step (fem.scene.SolverSettings(): {INTEGRATORS[integrator]}, {kind}; corotational, "
+                f"PCG {sci(BASELINE_TOLERANCE)}, {at_dt}) is on the frontier on {numbers['on_frontier']} of {n} "
+                f"scenes, meets the {100 * ERROR_GOAL:g} % goal on {numbers['meets_goal']} of {n}, and takes "
+                f"{fmt(time, '.2f')} times the wall time per simulated second of backward Euler's one-solve "
+                f"step{over}.")
+    return sentence, numbers
+
+
+def median_or_none(values):
+    known = [v for v in values if v is not None]
+    return statistics.median(known) if known else None
 
 
 def fmt(value, spec=".3g", missing="–"):

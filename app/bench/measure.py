@@ -14,7 +14,7 @@ import taichi as ti
 
 import fem
 from app.bench import direct
-from app.bench.conclusions import final_error
+from app.bench.conclusions import final_error, observed_orders, reference_floor, reference_order
 from app.bench.plan import (BASELINE_TOLERANCE, MAX_ITERATIONS, MIN_TIMED_STEPS, REFERENCE_SETTINGS, REFERENCES,
                             checkpoint_times, direct_backends, make_scene, variants)
 
@@ -29,7 +29,7 @@ def field_bytes(*objects):
 def configure(sim, variant):
     """Set the engine up for a variant and go back to t = 0."""
     settings = replace(sim.scene.solver, dt=variant.dt(sim.scene.solver.dt), step=variant.step,
-                       method="pcg", max_iterations=MAX_ITERATIONS)
+                       integrator=variant.integrator, method="pcg", max_iterations=MAX_ITERATIONS)
     if variant.solver == "reference":
         settings = replace(settings, **REFERENCE_SETTINGS)
     elif variant.solver == "pcg":
@@ -47,7 +47,7 @@ def configure(sim, variant):
 def warm_up(sim, steps=2):
     """Compile every kernel the variants use, and the measurements, before anything is timed."""
     engine = [v for v in variants() if v.solver != "direct"]
-    for variant in {(v.method, v.solver, v.step): v for v in engine}.values():
+    for variant in {(v.method, v.solver, v.step, v.integrator): v for v in engine}.values():
         configure(sim, variant)
         for _ in range(steps):
             sim.step()
@@ -106,15 +106,14 @@ def summarise(variant, run, reference, sim, times, plan):
     timed = infos[plan.warmup_steps:]
     ms = [i["wall_ms"] for i in timed]
     dt = variant.dt(sim.scene.solver.dt)
-    X = sim.model.rest_positions_np
-    diagonal = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
     errors = {}
     for t in map("{:g}".format, times):
         x = run["snapshots"].get(t)
-        errors[t] = None if x is None else rms(x - reference[t]) / diagonal
+        errors[t] = None if x is None else distance(x, reference[t], sim)
     row = {
         "label": f"{variant.name} ({variant.step_name}, dt {dt:g} s)", "name": variant.name,
-        "method": variant.method, "solver": variant.solver, "step": variant.step, "dt": dt,
+        "method": variant.method, "solver": variant.solver, "step": variant.step,
+        "integrator": variant.integrator, "dt": dt,
         "dt_factor": variant.dt_factor, "tolerance": variant.tolerance or None,
         "iterations": variant.iterations or None,
         "steps": len(infos), "timed_steps": len(timed), "stopped_early": run["stopped_early"],
@@ -139,29 +138,37 @@ def summarise(variant, run, reference, sim, times, plan):
     return row
 
 
+def distance(x, y, sim):
+    """RMS distance of the vertices of two position arrays (n, 3), over the bounding-box diagonal at rest."""
+    X = sim.model.rest_positions_np
+    return rms(x - y) / float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+
+
 def rms(d):
     return float(np.sqrt((d ** 2).sum(axis=1).mean()))
 
 
 def measure_references(scene, times, plan, args, progress):
-    """Rows of the reference and its twin at 2 dt_ref, and the reference's {time: positions}.
+    """Rows of the reference and its twins at 2 and 4 dt_ref, the reference's {time: positions}, and
+    the distance of the twins from each other at the last checkpoint (over the scene size).
 
     They run in f64: a bench in f32 restarts Taichi in f64 and back (which ends every
     Simulation made before; the positions are numpy arrays and outlive it)."""
     if args.precision != "f64":
         fem.init(args.arch, "f64", debug=args.debug)
     sim = fem.Simulation(scene)
-    rows, reference = [], None
+    rows, runs = [], []
     for variant in REFERENCES:
         progress.set_description(f"{scene.name}: {variant.name}")
         run = run_variant(sim, variant, times, plan)
-        if reference is None:
-            reference = run["snapshots"]
-        rows.append(summarise(variant, run, reference, sim, times, plan))
+        runs.append(run["snapshots"])
+        rows.append(summarise(variant, run, runs[0], sim, times, plan))
         progress.update()
+    last = f"{times[-1]:g}"
+    twins = distance(runs[2][last], runs[1][last], sim)
     if args.precision != "f64":
         fem.init(args.arch, args.precision, debug=args.debug)
-    return rows, reference
+    return rows, runs[0], twins
 
 
 PRECONDITIONER_TOLERANCE = 1e-3   # the comparison of preconditioners: corotational, one-solve step, this PCG tolerance
@@ -207,7 +214,7 @@ def stiff_bar(ref):
 def measure_scene(ref, plan, args, progress):
     scene = make_scene(ref)
     times = checkpoint_times(plan, scene.solver.dt)
-    rows, reference = measure_references(scene, times, plan, args, progress)
+    rows, reference, twins = measure_references(scene, times, plan, args, progress)
     sim = fem.Simulation(scene)
     progress.set_description(f"{ref}: compiling")
     warm_up(sim)
@@ -218,10 +225,14 @@ def measure_scene(ref, plan, args, progress):
         progress.update()
     progress.set_description(f"{ref}: preconditioners")
     preconditioners = compare_preconditioners(scene, plan.preconditioner_steps)
-    return {"name": ref, "description": scene.description, "tets": sim.model.n_tets,
-            "vertices": sim.model.n_vertices, "dt": scene.solver.dt, "reference_dt": rows[0]["dt"],
-            "reference_floor": final_error(rows[1]), "checkpoints": times, "variants": rows,
-            "preconditioners": preconditioners}
+    out = {"name": ref, "description": scene.description, "tets": sim.model.n_tets,
+           "vertices": sim.model.n_vertices, "dt": scene.solver.dt, "reference_dt": rows[0]["dt"],
+           "reference_difference": final_error(rows[1]), "twins_difference": twins,
+           "reference_order": reference_order(final_error(rows[1]), twins),
+           "checkpoints": times, "variants": rows, "preconditioners": preconditioners}
+    out["reference_floor"] = reference_floor(out["reference_difference"], out["reference_order"])
+    out["observed_order"] = observed_orders(out)
+    return out
 
 
 # ---------------------------------------------------------------- the machine

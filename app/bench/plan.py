@@ -6,9 +6,11 @@ import numpy as np
 
 import scenes
 from app.bench import direct
+from app.bench.order import INTEGRATORS   # {"backward-euler": "backward Euler", "bdf2": "BDF2"}: the tables' names
 from assets.generators import box
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
 
+STEPS = {"corotational": ("newton", "single"), "linear": ("newton",)}   # a linear body's step is exact either way
 DT_FACTORS = (2, 1, 0.5, 0.25)   # the dt axis, times the scene's dt (0.04 to 0.005 s for the seed scenes)
 PCG_TOLERANCES = (1e-2, 1e-3, 1e-4, 1e-6)
 JACOBI_ITERATIONS = (10, 30, 100)
@@ -18,11 +20,19 @@ DIRECT_TOLERANCE = 1e-3          # the matrix-free step set against the direct b
 DIRECT_TARGET = 30               # issue 12: the matrix-free step at least 30 times faster than the fastest direct one
 MAX_ITERATIONS = 1000            # PCG: the tolerance, not the cap, ends a solve
 REFERENCE_REFINEMENT = 8         # dt_ref = the scene's dt / 8
-REFERENCE_SETTINGS = dict(step="newton", method="pcg", tolerance=1e-10, newton_tolerance=1e-10,
-                          max_newton=50, rotations="svd")
+# The reference: BDF2, Newton to a gradient of 1e-10 of the step's terms. Where the line search finds no
+# more decrease (up to half the steps of a turning scene stall near 1e-7, each iteration trying 13 step
+# lengths), it stops once an iteration changes the velocity by under 1e-8 of its size, or after 15
+# iterations; its rotations are the engine's own, certified to 1e-12 rad in f64 (SVD where they cannot be).
+# Against 1e-10, 50 iterations and SVD rotations throughout, the positions at 2 s move by 3e-7 of the scene
+# size on torsion and 1e-7 on cube86, far under each floor (cube86's reference: 7 s instead of 42).
+REFERENCE_SETTINGS = dict(step="newton", integrator="bdf2", method="pcg", tolerance=1e-10, newton_tolerance=1e-8,
+                          max_newton=15, rotations="iterative")
+REFERENCE_RUNS = (1, 2, 4)       # the reference at dt_ref, and its twins at 2 and 4 dt_ref: its own order
+REFERENCE_ORDER = 2              # BDF2's: the reference's own observed order counts for at most this (more is luck)
+MIN_REFERENCE_ORDER = 0.5        # and at least this (a floor 2.4 times its distance to the run at 2 dt_ref):
+                                 # slower, its runs say little about its error (the bunny on the ground: 0.3)
 ERROR_GOAL = 1e-2                # accurate enough: RMS position error under 1 % of the bounding-box diagonal
-                                 # (against a converged reference backward Euler's own error dominates, and
-                                 # 0.1 % lies below the reference's floor on the spinning bars)
 MIN_TIMED_STEPS = 3              # a variant stopped by the time budget still times this many steps
 BOXES = {"box80": 2, "box1k": 5, "box10k": 10, "box50k": 17}   # 2 x 1 x 1 m bar, 2k x k x k cells
 
@@ -59,16 +69,18 @@ class Variant:
     tolerance: float = 0.0    # pcg, reference
     iterations: int = 0       # jacobi
     backend: str = ""         # direct: a name in app.bench.direct.BACKENDS
+    integrator: str = "backward-euler"   # a name in fem.scene.INTEGRATORS
 
     @property
     def name(self):
-        """What it solves with, e.g. "corotational PCG 1e-4"."""
+        """What it integrates and solves with, e.g. "corotational BDF2 PCG 1e-4"."""
         if self.solver == "reference":
-            return "reference" if self.dt_factor == 1 / REFERENCE_REFINEMENT else "reference at 2 dt_ref"
+            k = round(self.dt_factor * REFERENCE_REFINEMENT)
+            return f"{INTEGRATORS[self.integrator]} reference" + (f" at {k} dt_ref" if k > 1 else "")
         if self.solver == "direct":
-            return f"{self.method} direct ({direct_role(self.backend)})"
+            return f"{self.method} {INTEGRATORS[self.integrator]} direct ({direct_role(self.backend)})"
         setting = {"pcg": f"PCG {sci(self.tolerance)}", "jacobi": f"Jacobi x{self.iterations}"}[self.solver]
-        return f"{self.method} {setting}"
+        return f"{self.method} {INTEGRATORS[self.integrator]} {setting}"
 
     def dt(self, scene_dt):
         return self.dt_factor * scene_dt
@@ -78,8 +90,8 @@ class Variant:
         return "exact" if self.method == "linear" else {"newton": "Newton", "single": "single"}[self.step]
 
 
-REFERENCES = [Variant("corotational", "reference", "newton", k / REFERENCE_REFINEMENT,
-                      REFERENCE_SETTINGS["tolerance"]) for k in (1, 2)]   # the reference, and at 2 dt_ref
+REFERENCES = [Variant("corotational", "reference", "newton", k / REFERENCE_REFINEMENT, REFERENCE_SETTINGS["tolerance"],
+                      integrator=REFERENCE_SETTINGS["integrator"]) for k in REFERENCE_RUNS]
 
 
 def direct_backends():
@@ -93,14 +105,18 @@ def direct_role(backend):
 
 
 def variants():
-    """Every variant but the references, in the order of the tables."""
+    """Every variant but the references, in the order of the tables: backward Euler over every axis,
+    then BDF2 over the dt axis alone (its tolerances and solvers would repeat backward Euler's)."""
     out = []
-    for method, steps in (("corotational", ("newton", "single")), ("linear", ("newton",))):
+    for method, steps in STEPS.items():
         for step in steps:
             out += [Variant(method, "pcg", step, f, BASELINE_TOLERANCE) for f in DT_FACTORS]
             out += [Variant(method, "pcg", step, 1, tol) for tol in PCG_TOLERANCES if tol != BASELINE_TOLERANCE]
         out += [Variant(method, "jacobi", iterations=k) for k in JACOBI_ITERATIONS]
         out += [Variant(method, "direct", backend=name) for name in direct_backends()]
+    for method, steps in STEPS.items():
+        out += [Variant(method, "pcg", step, f, BASELINE_TOLERANCE, integrator="bdf2") for step in steps
+                for f in DT_FACTORS]
     return out
 
 
@@ -111,6 +127,11 @@ def sci(x):
 
 def step_name(row):
     return Variant(row["method"], row["solver"], row["step"]).step_name
+
+
+def integrator_of(row):
+    """A row's integrator (rows from before the integrator axis are backward Euler's)."""
+    return row.get("integrator", "backward-euler")
 
 
 # ---------------------------------------------------------------- scenes

@@ -3,10 +3,14 @@
 
 from app.bench import direct
 from app.bench.conclusions import final_error
-from app.bench.plan import BASELINE_TOLERANCE, DT_FACTORS, ERROR_GOAL, JACOBI_ITERATIONS, PCG_TOLERANCES, sci, step_name
+from app.bench.plan import (BASELINE_TOLERANCE, DT_FACTORS, ERROR_GOAL, JACOBI_ITERATIONS, PCG_TOLERANCES,
+                            integrator_of, sci, step_name)
 
-COLOURS = {("corotational", "newton"): "tab:blue", ("corotational", "single"): "tab:purple",
-           ("linear", "newton"): "tab:orange", ("linear", "single"): "tab:orange"}
+COLOURS = {   # (method, step, integrator)
+    ("corotational", "newton", "backward-euler"): "tab:blue", ("corotational", "newton", "bdf2"): "tab:cyan",
+    ("corotational", "single", "backward-euler"): "tab:purple", ("corotational", "single", "bdf2"): "tab:pink",
+    ("linear", "newton", "backward-euler"): "tab:orange", ("linear", "newton", "bdf2"): "tab:brown",
+    ("linear", "single", "backward-euler"): "tab:orange"}
 LEGEND_INCHES = 1.2   # below the plots
 
 
@@ -18,8 +22,10 @@ def series(scene):
         error = final_error(row)
         if error is None:
             return
+        integrator = integrator_of(row)
         kind = "linear" if row["method"] == "linear" else f"corotational {step_name(row)}"
-        key = (f"{kind}, {what}", COLOURS[row["method"], row["step"]], style)
+        kind += ", BDF2" if integrator == "bdf2" else ""          # unmarked: backward Euler
+        key = (f"{kind}, {what}", COLOURS[row["method"], row["step"], integrator], style)
         out.setdefault(key, []).append((row["s_per_sim_s"], max(error, 1e-12), label))
 
     dts = "dt " + " / ".join(format(f * scene["dt"], "g") for f in DT_FACTORS) + " s"
@@ -27,9 +33,10 @@ def series(scene):
     jacobi = "Jacobi x" + " / ".join(map(str, JACOBI_ITERATIONS))
     ends = (PCG_TOLERANCES[0], PCG_TOLERANCES[-1], JACOBI_ITERATIONS[0], JACOBI_ITERATIONS[-1])
     for r in scene["variants"]:   # only the ends of the tolerance and Jacobi axes are labelled: they crowd
+        bdf2 = integrator_of(r) == "bdf2"
         if r["solver"] == "pcg" and r["tolerance"] == BASELINE_TOLERANCE:
-            add(r, dts, "o-", f"{r['dt']:g} s")
-        if r["solver"] == "pcg" and r["dt_factor"] == 1:
+            add(r, dts, "v-" if bdf2 else "o-", f"{r['dt']:g} s")
+        if r["solver"] == "pcg" and r["dt_factor"] == 1 and not bdf2:
             add(r, tolerances, "^--", sci(r["tolerance"]) if r["tolerance"] in ends else "")
         if r["solver"] == "jacobi":
             add(r, jacobi, "s:", f"J{r['iterations']}" if r["iterations"] in ends else "")
@@ -78,7 +85,8 @@ def plot(results, file):
     m = results["machine"]
     fig.suptitle("Position error (RMS distance to the reference / bounding-box diagonal) against wall time per "
                  f"simulated second; {m['backend']} {m['precision']}, {m['cores']} cores\n"
-                 "points: dt, PCG tolerance, Jacobi iterations (log-log: down and left is better)", fontsize=9)
+                 "points: dt, PCG tolerance, Jacobi iterations; backward Euler unless marked BDF2 (log-log: down and "
+                 "left is better)", fontsize=9)
     fig.tight_layout(rect=(0, LEGEND_INCHES / height, 1, 1))
     fig.savefig(file, format="png", dpi=110)
     plt.close(fig)

@@ -4,10 +4,11 @@ preconditioners, one table per scene), results.json (every number) and the plot.
 import json
 from pathlib import Path
 
-from app.bench.conclusions import (baseline, corotation_cost, direct_comparison, find, fmt, final_error, frontier,
-                                   goal_dt)
+from app.bench.conclusions import (ORDER_MARGIN, baseline, corotation_cost, direct_comparison, find, fmt, final_error,
+                                   frontier, goal_dt)
 from app.bench.measure import PRECONDITIONER_TOLERANCE
-from app.bench.plan import BASELINE_TOLERANCE, ERROR_GOAL, REFERENCE_REFINEMENT, REFERENCE_SETTINGS, sci, step_name
+from app.bench.plan import (BASELINE_TOLERANCE, ERROR_GOAL, INTEGRATORS, MIN_REFERENCE_ORDER, REFERENCE_ORDER,
+                            REFERENCE_REFINEMENT, REFERENCE_SETTINGS, sci, step_name)
 from app.bench.plot import plot
 from app.files import atomic_open
 from fem.implicit.preconditioner import TWO_LEVEL_VERTICES
@@ -23,18 +24,26 @@ DOCS_FILES = {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_
 def explanation(results):
     """Two paragraphs: the reference and what its error floor means; the columns."""
     plan = results["plan"]
+    settings = REFERENCE_SETTINGS
+    integrator, order = INTEGRATORS[settings["integrator"]], REFERENCE_ORDER
     reference = (
-        "Each run starts from the same state and runs to the last checkpoint. **The reference** is corotational "
-        f"backward Euler at dt_ref = the scene's dt / {REFERENCE_REFINEMENT}: Newton until every body's gradient "
-        f"is under 1e-10 of the step's own terms (at most {REFERENCE_SETTINGS['max_newton']} iterations), PCG to "
-        "1e-10, SVD rotations, in float64 whatever the variants' precision (so its timings are f64's). Being "
-        "backward Euler, it has an O(dt_ref) error of its own: *reference at 2 dt_ref*, the same at twice that "
-        "dt, differs from it by about that much, and its error is the floor of the error axis. Errors near the "
-        "floor are measured too low (a variant at dt shows about (dt - dt_ref) / dt of its true error: 1/2 at "
-        "2 dt_ref, 7/8 at 8 dt_ref), so a run meets the goal of "
-        f"{100 * ERROR_GOAL:g} % of the scene size only when its error plus the floor does. dt_ref = the "
-        "smallest variant dt / 8 would lower the floor 4 times, but the reference, already the dearest run of a "
-        "scene, would cost 4 times more.")
+        f"Each run starts from the same state and runs to the last checkpoint. **The reference** is corotational "
+        f"{integrator} (order {order}) at dt_ref = the scene's dt / {REFERENCE_REFINEMENT}: Newton until every "
+        f"body's gradient is under {sci(settings['tolerance'])} of the step's own terms, or an iteration changes "
+        f"its velocity by under {sci(settings['newton_tolerance'])} of its size (at most {settings['max_newton']} "
+        f"iterations), PCG to {sci(settings['tolerance'])}, rotations certified to 1e-12 rad, in float64 whatever "
+        "the variants' precision (so its timings are f64's); its first step, with no history yet, is backward "
+        f"Euler's. Its own error is C dt_ref^p: *{integrator} reference at 2 dt_ref* and *at 4 dt_ref*, the same at "
+        "twice and four times that dt, differ from each other 2^p times as much as the first differs from the "
+        "reference, which gives p, the reference's own order (*its order*). The *reference floor*, its error, is its "
+        f"distance to the run at 2 dt_ref over 2^p - 1 (3 for p = {order}), p taken at most {order} and at least "
+        f"{MIN_REFERENCE_ORDER:g} (ground contact, an impulsive start or a torsional wave make it converge more "
+        "slowly on some scenes). The error axis bottoms out there: a measured error is the true one give or take "
+        f"the floor, so a run meets the goal of {100 * ERROR_GOAL:g} % of the scene size only when its error plus "
+        "the floor does. (A backward-Euler reference at the same dt_ref, first order, had a floor as large as that "
+        "distance, close to the smallest errors of the dt axis on the spinning bars.) *Observed order*: the slope "
+        f"of log error against log dt over a dt axis (least squares, leaving out errors under {ORDER_MARGIN} times "
+        "the floor): about 1 for backward Euler and 2 for BDF2 where dt resolves the motion.")
     columns = (
         "*step*: Newton (iterated until the velocity settles to the scene's newton_tolerance) or single (one "
         "linear solve with the rotations of the step's start); a linear body's step is exact either way. "
@@ -63,8 +72,9 @@ def markdown(results):
     lines += targets(results)
     lines += preconditioner_table(results)
     lines += ["## Summary", "",
-              f"Corotational, PCG {sci(BASELINE_TOLERANCE)}; time in wall seconds per simulated second, errors at "
-              "the last checkpoint; the largest dt of the dt axis whose error plus the floor is within the goal.", "",
+              f"Corotational backward Euler, PCG {sci(BASELINE_TOLERANCE)}; time in wall seconds per simulated "
+              "second, errors at the last checkpoint; the largest dt of the dt axis whose error plus the floor is "
+              "within the goal.", "",
               "| scene | tets | dt (s) | reference floor | Newton s/sim s | single s/sim s | Newton error | "
               "single error | largest dt within goal, Newton | single | corotation's extra cost, single | "
               "Newton | direct |",
@@ -78,11 +88,14 @@ def markdown(results):
             f"| {fmt(goal_dt(s, 'newton'), 'g', 'none')} | {fmt(goal_dt(s, 'single'), 'g', 'none')} "
             f"| {corotation_cost(s, 'single'):+.0f} % | {corotation_cost(s, 'newton'):+.0f} % "
             f"| {corotation_cost(s, 'single', 'direct'):+.0f} % |")
+    lines += integrator_table(results["scenes"])
     for s in results["scenes"]:
         times = [f"err {t:g} s" for t in s["checkpoints"]]
         lines += ["", f"## {s['name']}", "",
                   f"{s['description']} {s['tets']} tets, {s['vertices']} vertices, scene dt {s['dt']:g} s, "
-                  f"dt_ref {s['reference_dt']:g} s.", "",
+                  f"dt_ref {s['reference_dt']:g} s, reference floor {s['reference_floor']:.1e} (its distance to the "
+                  f"run at 2 dt_ref, {s['reference_difference']:.1e}, over 2^p - 1; its own order "
+                  f"{s['reference_order']:.2f}).", "",
                   "| variant | step | dt (s) | s/sim s | ms/step | min-max | Newton | iters | ns/tet/iter | rot ms "
                   "| halvings | E-limited | B/tet | " + " | ".join(times) + " | vol | energy |",
                   "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(times)
@@ -203,6 +216,36 @@ def targets(results):
             "Measured in this run (start-up: `app/bench/startup.py`, medians of 3; the window on $DISPLAY or, "
             "without one, a virtual display, Xvfb). No GPU was available.", "",
             "| target | goal | measured | verdict | what limits it |", "|---|---|---:|---|---|", *rows, ""]
+
+
+def integrator_table(scenes):
+    """Per scene: the reference's floor, each integrator's observed order, and BDF2 against backward Euler."""
+    lines = ["", "## Integrators and the reference's floor", "",
+             f"Corotational, PCG {sci(BASELINE_TOLERANCE)}. *its order*: the reference's own, from its runs at 2 and "
+             "4 dt_ref; *floor*: the reference's own error, its distance to the run at 2 dt_ref over 2^p - 1; "
+             "*order*: the slope of log error against log dt over the dt axis (–: fewer than two errors above "
+             f"{ORDER_MARGIN} times the floor); *BDF2 / BE*: BDF2's error and time per simulated second over "
+             "backward Euler's, at the scene's dt; the largest dt of BDF2's dt axis whose error plus the floor is "
+             "within the goal.", "",
+             "| scene | dt_ref (s) | distance at 2 dt_ref | its order | floor | order, backward Euler Newton | single "
+             "| BDF2 Newton | single | BDF2 / BE error, Newton | single | BDF2 / BE s/sim s, Newton | single "
+             "| largest dt within goal, BDF2 Newton | single |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for s in scenes:
+        order = s["observed_order"]
+        cells = [fmt(order[i][step], ".2f") for i in INTEGRATORS for step in ("newton", "single")]
+        pairs = [(baseline(s, "corotational", step, integrator="bdf2"), baseline(s, "corotational", step))
+                 for step in ("newton", "single")]
+        cells += [fmt(ratio(final_error(a), final_error(b)), ".2g") for a, b in pairs]
+        cells += [fmt(ratio(a["s_per_sim_s"], b["s_per_sim_s"]), ".2f") for a, b in pairs]
+        cells += [fmt(goal_dt(s, step, "bdf2"), "g", "none") for step in ("newton", "single")]
+        lines.append(f"| {s['name']} | {s['reference_dt']:g} | {s['reference_difference']:.1e} "
+                     f"| {s['reference_order']:.2f} | {s['reference_floor']:.1e} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def ratio(a, b):
+    return a / b if a is not None and b else None
 
 
 def preconditioner_table(results):
