@@ -111,7 +111,7 @@ class Effects:
 class SolverSettings:
     dt: float = 0.02                    # s
     step: str = "newton"                # "newton": minimise the incremental potential | "single": one solve
-    integrator: str = "backward-euler"  # "backward-euler" (first order) | "bdf2" (second order, two steps)
+    integrator: str = "bdf2"            # "bdf2" (second order, two steps) | "backward-euler" (first order)
     max_newton: int = 20                # Newton iterations per step at most
     newton_tolerance: float = 1e-5      # per body: stop (unconverged) when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration

@@ -28,7 +28,8 @@ def backend(request):
 
 def twisted_spinning_box(method, effects=None, pinned=None):
     scene = make_scene(box_mesh(3), method, E=1e4, nu=0.3, density=100.0, effects=effects, pinned=pinned,
-                       solver=SolverSettings(dt=0.01, tolerance=1e-10, max_iterations=500, rotations="svd"))
+                       solver=SolverSettings(dt=0.01, tolerance=1e-10, max_iterations=500, rotations="svd",
+                                             integrator="backward-euler"))   # the baseline's integrator
     scene.initial = [Initial(Selection(None), "twist_shape", (np.array([1.0, 0, 0]), np.radians(60))),
                      Initial(Selection(None), "spin", (np.array([0.0, 0, 1.0]), 2.0))]
     return scene
