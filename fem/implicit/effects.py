@@ -93,16 +93,20 @@ class Effects:
     # ------------------------------------------------------------ the ground: energy, gradient, Hessian
 
     @ti.func
-    def contact_energy(self, i, x):
-        """k m_i / 2 min(0, y - y_g)^2 of vertex i at position x, float64 (J): what the ground stores."""
-        d = ti.cast(ti.min(0.0, x[1] - self.ground[None]), ti.f64)
+    def penalty(self, i, x, plane):
+        """k m_i / 2 min(0, y - plane)^2 of vertex i at position x, float64 (J)."""
+        d = ti.cast(ti.min(0.0, x[1] - plane), ti.f64)
         return 0.5 * ti.cast(self.contact_stiffness[None] * self.model.mass[i], ti.f64) * d * d
 
     @ti.func
+    def contact_energy(self, i, x):
+        """What the ground stores at vertex i: the penalty against the ground itself (J)."""
+        return self.penalty(i, x, self.ground[None])
+
+    @ti.func
     def step_contact_energy(self, i, x):
-        """The step's contact term of vertex i: as contact_energy, against its plane this step."""
-        d = ti.cast(ti.min(0.0, x[1] - self.plane[i]), ti.f64)
-        return 0.5 * ti.cast(self.contact_stiffness[None] * self.model.mass[i], ti.f64) * d * d
+        """The step's contact term of vertex i: the penalty against its plane this step (J)."""
+        return self.penalty(i, x, self.plane[i])
 
     @ti.func
     def friction_energy(self, i, v, h):
