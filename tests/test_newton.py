@@ -170,4 +170,4 @@ def test_the_first_guess_extrapolates_the_last_steps_change(f64):
 
     sim.apply_impulse([3], (np.nan, 0.0, 0.0))           # an impulse that breaks the step
     assert not sim.step()["finite"]
-    assert np.isfinite(sim.solver.newton.change.to_numpy()).all()
+    assert np.isfinite(sim.solver.newton.guess.to_numpy()).all()

@@ -104,6 +104,14 @@ class Effects:
         return self.penalty(i, x, self.ground[None])
 
     @ti.func
+    def pressed(self, i, x):
+        """1 where vertex i at x is pressed into the ground (it has a normal force), else 0."""
+        out = 0
+        if ti.static(self.has_ground):
+            out = int(x[1] < self.ground[None])
+        return out
+
+    @ti.func
     def step_contact_energy(self, i, x):
         """The step's contact term of vertex i: the penalty against its plane this step (J)."""
         return self.penalty(i, x, self.plane[i])

@@ -13,13 +13,17 @@ changing (`velocity_change`: the last iteration moved no body's velocity by more
 newton_tolerance of its size), when no body can descend further at this precision, or after
 max_newton iterations; the step's stats then say it did not converge.
 
-The first Newton iteration from v = 0 is the classical one-solve (stiffness-warping) step:
-`one_solve` stops there, without line search. Either starts its first solve from the last
-step's velocity change, extrapolated (`start_direction`).
+The step's guess for v is v_n extrapolated with the last step's change (`extrapolate`).
+Backward Euler's first iterate is v = 0 (x = x_n), and its first Newton iteration is the
+classical one-solve (stiffness-warping) step; BDF2's first iterate is the guess itself, so its
+rotations are those of a position off by O(dt^3), not O(dt^2): that keeps its one-solve step
+second order (docs/method.md). `one_solve` stops after the first iteration, without line
+search. Either starts its first solve from the guess (`start_direction`).
 
 Fields (n vertices, bodies of the capacity):
     velocity (n, 3)             v of the accepted iterate, m/s
-    change (n, 3)               v_n - v_(n-1), the last step's change, m/s
+    guess (n, 3)                m/s: between steps v_n - v_(n-1), the last step's change; within a
+                                step v_n + scale (v_n - v_(n-1)), the step's guess for v
     body_E_accepted (bodies,)   E_b at the accepted iterate, J
     body_resolution (bodies,)   J: changes of E_b below this are round-off
     body_slope (bodies,)        grad_b E . d_b, J (< 0: d descends for body b)
@@ -39,7 +43,7 @@ from fem.runtime import epsilon
 
 ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
 MAX_HALVINGS = 12        # line search: a >= 2^-12
-FORCING = 0.1            # inexact Newton: CG reduces the gradient by this factor (at least)
+FORCING = 0.1            # inexact Newton from v = 0: CG reduces the gradient by this factor (at least)
 
 
 @dataclass
@@ -68,7 +72,7 @@ class Newton:
         self.effects, self.sleep = effects, sleep
         self.serial_vertices = switches.serial_vertices
         self.velocity = ti.Vector.field(3, float, n)
-        self.change = ti.Vector.field(3, float, n)
+        self.guess = ti.Vector.field(3, float, n)
         self.body_E_accepted = ti.field(ti.f64, nb)
         self.body_resolution = ti.field(ti.f64, nb)
         self.body_slope = ti.field(ti.f64, nb)
@@ -77,6 +81,7 @@ class Newton:
         self.body_change = ti.field(ti.f64, nb)
         self.body_momentum = ti.field(ti.f64, nb)
         self.body_speed_floor = ti.field(ti.f64, nb)
+        self.from_guess = False           # the step's first iterate is its guess (else v = 0)
 
     def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
@@ -84,14 +89,17 @@ class Newton:
         frozen: the rotations stay those of the first iterate (the one-solve step on the ground:
         E is then quadratic but for the ground's terms, and the iterations find the contacts)."""
         p = self.potential
-        p.energy(p.v0, p.x, p.v, h, first=True)              # E_b of every body at the first iterate
+        p.energy(p.v0, p.x, p.v, h, self.from_guess)         # E_b of every body at the first iterate
         out = Solved(rho=p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 1))   # its tet terms came with E
         self.accept(p.v, 1)
         # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the
-        # tolerance at once, and off the ground one iteration is the answer
+        # tolerance at once, and off the ground one iteration is the answer. So it is from the
+        # guess: what is left of E's nonlinearity after one iteration is small, and an inexact
+        # direction would cost a second iteration (BDF2 on epcot: 2.55 iterations a step with
+        # FORCING, 2.05 without, 10.0 -> 8.7 ms)
         quadratic = frozen or not self.model.any_corotational
         while out.rho > 1.0 and out.newton_iters < settings.max_newton:
-            target = 1.0 if quadratic else max(1.0, FORCING ** 2 * out.rho)
+            target = 1.0 if quadratic or self.from_guess else max(1.0, FORCING ** 2 * out.rho)
             out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
                                                preconditioner)
             out.newton_iters += 1
@@ -122,7 +130,7 @@ class Newton:
         """The first Newton iteration alone, with the rotations of the first iterate and no
         line search (the one-solve step); returns Solved, rho the linear solve's residual."""
         p = self.potential
-        out = Solved(rho=p.gradient(p.v0, p.x, p.v, h, tolerance, True))
+        out = Solved(rho=p.gradient(p.v0, p.x, p.v, h, tolerance, True, self.from_guess))
         if out.rho > 1.0:
             out.solver_iters = self.direction(cM, cK, 1.0, True, scale, settings, preconditioner)
             out.newton_iters = 1
@@ -133,7 +141,7 @@ class Newton:
     def direction(self, cM, cK, target, warm, scale, settings, preconditioner):
         """d <- the solution of H d = -grad E to the weighted residual `target`, from the
         extrapolated guess (warm) or 0; returns the linear solver's iterations."""
-        self.start_direction(self.potential.v0, int(warm), scale)
+        self.start_direction(int(warm))
         return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner)
 
     def trial(self, h, settings, frozen=False):
@@ -147,25 +155,41 @@ class Newton:
         return ms
 
     @ti.kernel
-    def start_iterate(self, x0: ti.template(), x: ti.template(), v: ti.template()):
-        """The first Newton iterate: v = 0, x = x^."""
+    def extrapolate(self, v: ti.template(), scale: float):
+        """guess <- v_n + scale (v_n - v_(n-1)), v = v_n: the velocity extrapolated with the last
+        step's change (scaled by the ratio of the dts). On a turning body it takes a quarter to
+        a third of PCG's first iterations off (docs/method.md, section 7)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            self.velocity[i] = ti.Vector.zero(float, 3)
-            v[i] = ti.Vector.zero(float, 3)
-            x[i] = x0[i]
+            self.guess[i] = v[i] + scale * self.guess[i]
+
+    def first_iterate(self, x0, x, v, h, from_guess):
+        """The first Newton iterate: v = the guess (from_guess) or 0, x = x^ + h v; x holds x_n.
+        A vertex pressed into the ground starts at v = 0 either way: friction's curvature is that
+        of sticking there, and a guess a little faster than FRICTION_SPEED would start it sliding."""
+        self.from_guess = bool(from_guess)                    # v != 0: its damping terms count
+        self.start_iterate(x0, x, v, h, int(from_guess))
 
     @ti.kernel
-    def start_direction(self, v0: ti.template(), warm: ti.i32, scale: float):
-        """d <- filtered v_n + scale (v_n - v_(n-1)) - v, or 0. On the first Newton iteration
-        the velocity extrapolated with the last step's change (scaled by the ratio of the dts)
-        is a good guess: on a turning body it takes a quarter to a third of PCG's iterations
-        off (docs/method.md, section 7)."""
+    def start_iterate(self, x0: ti.template(), x: ti.template(), v: ti.template(), h: float,
+                      from_guess: ti.i32):
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            u = ti.Vector.zero(float, 3)
+            if from_guess and not self.effects.pressed(i, x[i]):
+                u = self.effects.filtered(i, self.guess[i])
+            self.velocity[i] = u
+            v[i] = u
+            x[i] = x0[i] + h * u
+
+    @ti.kernel
+    def start_direction(self, warm: ti.i32):
+        """d <- the guess less the iterate (filtered), or 0."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             d = ti.Vector.zero(float, 3)
             if warm:
-                d = self.effects.filtered(i, v0[i] + scale * self.change[i] - self.velocity[i])
+                d = self.effects.filtered(i, self.guess[i] - self.velocity[i])
             self.linear.solution[i] = d
 
     @ti.kernel

@@ -92,12 +92,12 @@ class IncrementalPotential:
 
     # ------------------------------------------------------------ E
 
-    def energy(self, v0, x, v, h, first=False):
+    def energy(self, v0, x, v, h, moving=True):
         """E_b(v) of every body at x = x^ + h v into body_E (J, float64), with the rotations at
         x already extracted, and the tet terms of grad E there (gradient_vertices finishes it).
-        first: the step's first iterate, v = 0."""
+        moving=False: v is 0 (backward Euler's first iterate), so the damping terms are too."""
         self.energy_vertices(x, v0, v, h)
-        self.energy_tets(x, v, h, int(not first))
+        self.energy_tets(x, v, h, int(moving))
 
     @ti.kernel
     def energy_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt: float):
@@ -146,9 +146,10 @@ class IncrementalPotential:
 
     # ------------------------------------------------------------ grad E
 
-    def gradient(self, v0, x, v, h, tolerance, first):
-        """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1)."""
-        self.gradient_corners(x, v, h, int(not first))   # first: v = 0
+    def gradient(self, v0, x, v, h, tolerance, first, moving=True):
+        """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1).
+        first: the step's first iterate (it sets the scales); moving=False: v is 0."""
+        self.gradient_corners(x, v, h, int(moving))
         return self.gradient_vertices(x, v0, v, h, tolerance, int(first))
 
     @ti.kernel

@@ -125,8 +125,10 @@ class ImplicitSolver:
         rotation_ms, turned = self.update_rotations(p.x, corotational, first=True, scale=scale)   # R(x_n)
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE)                # x, v = x_n, v_n still
+        self.newton.extrapolate(p.v0, scale)                            # the guess for v
         self.history.apply(target, p)                                   # x^, v^ (backward Euler: x_n, v_n)
-        self.newton.start_iterate(p.x0, p.x, p.v)
+        # the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
+        self.newton.first_iterate(p.x0, p.x, p.v, h, target.b != 0.0)
         if target.b != 0.0:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
         if ground:
@@ -153,7 +155,7 @@ class ImplicitSolver:
         if finite and newton:
             self.safeguards.body_energy(p.x, p.v, AFTER)
             limited = self.safeguards.limit_energy(state_in.x, p.x, p.v, dt)
-        self.finish(state_out.x, state_out.v, int(finite))
+        self.finish(state_in.v, state_out.x, state_out.v, int(finite))
         if finite:
             self.history.remember(state_in.x, state_in.v, settings.integrator, dt)
         else:
@@ -263,16 +265,16 @@ class ImplicitSolver:
         """The last step's velocity change <- 0."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            self.newton.change[i] = ti.Vector.zero(float, 3)
+            self.newton.guess[i] = ti.Vector.zero(float, 3)
 
     @ti.kernel
-    def finish(self, x: ti.template(), v: ti.template(), good: ti.i32):
-        """state_out <- the iterate; the last change <- v - v_n for the next step's first guess
+    def finish(self, v_n: ti.template(), x: ti.template(), v: ti.template(), good: ti.i32):
+        """state_out <- the iterate; the last change <- v - v_n for the next step's guess
         (0 after a step whose result is not finite)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             x[i], v[i] = self.potential.x[i], self.potential.v[i]
             dv = ti.Vector.zero(float, 3)
             if good:
-                dv = self.potential.v[i] - self.potential.v0[i]
-            self.newton.change[i] = dv
+                dv = self.potential.v[i] - v_n[i]
+            self.newton.guess[i] = dv
