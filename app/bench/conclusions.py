@@ -211,11 +211,11 @@ def headline(scenes):
     largest = max(scenes, key=lambda s: s["tets"])
     sentence, numbers["direct_over_matrix_free"] = direct_comparison(largest)
     lines.append(sentence)
-    lines.append(f"Corotation costs {numbers['corotation_cost_single_pct']:.0f} % more per step than linear with "
-                 f"the matrix-free one-solve step (PCG {sci(BASELINE_TOLERANCE)}), "
-                 f"{numbers['corotation_cost_newton_pct']:.0f} % with Newton and "
-                 f"{numbers['corotation_cost_direct_pct']:.0f} % with the fastest direct solver"
-                 + (" (medians)." if n > 1 else "."))
+    pct = {k: f"{numbers[f'corotation_cost_{k}_pct']:+.0f} %" for k in ("single", "newton", "direct")}
+    lines.append(f"Corotation costs, per step against a linear body's (one exact solve, inside the line search "
+                 f"and the energy safeguard): {pct['single']} with the matrix-free one-solve step (PCG "
+                 f"{sci(BASELINE_TOLERANCE)}; it skips both, so it can cost less), {pct['newton']} with Newton and "
+                 f"{pct['direct']} with the fastest direct solver" + (" (medians)." if n > 1 else "."))
     dt_ref = f" = {scenes[0]['reference_dt']:g} s" if len(dts) == 1 else ""
     orders = [s["reference_order"] for s in scenes]
     numbers["reference_order"] = statistics.median(orders)
