@@ -90,7 +90,7 @@ class Newton:
         E is then quadratic but for the ground's terms, and the iterations find the contacts)."""
         p = self.potential
         p.energy(p.v0, p.x, p.v, h, self.from_guess)         # E_b of every body at the first iterate
-        out = Solved(rho=p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 1))   # its tet terms came with E
+        out = Solved(rho=p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 1, int(self.from_guess)))   # its tet terms came with E
         self.accept(p.v, 1)
         # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the
         # tolerance at once, and off the ground one iteration is the answer. So it is from the
@@ -120,7 +120,7 @@ class Newton:
                 p.energy(p.v0, p.x, p.v, h)
             self.accept(p.v, 0)
             change = self.velocity_change(settings.newton_tolerance)
-            out.rho = p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 0)   # tet terms: with the last E
+            out.rho = p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 0, 1)   # tet terms: with the last E
             if change <= 1.0:                                 # every body's velocity has settled
                 out.settled = True
                 break

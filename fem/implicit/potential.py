@@ -150,7 +150,7 @@ class IncrementalPotential:
         """-grad E at (x, v) into rhs; returns the weighted norm rho (converged: rho <= 1).
         first: the step's first iterate (it sets the scales); moving=False: v is 0."""
         self.gradient_corners(x, v, h, int(moving))
-        return self.gradient_vertices(x, v0, v, h, tolerance, int(first))
+        return self.gradient_vertices(x, v0, v, h, tolerance, int(first), int(moving))
 
     @ti.kernel
     def gradient_corners(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
@@ -181,10 +181,10 @@ class IncrementalPotential:
 
     @ti.kernel
     def gradient_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt: float,
-                          tolerance: ti.f64, first: ti.i32) -> ti.f64:
+                          tolerance: ti.f64, first: ti.i32, moving: ti.i32) -> ti.f64:
         """rhs <- -grad E = M v^ + dt M g - (1 + dt alpha) M v - (gathered tet terms) + (the
         ground's), and the per-body |grad_b|^2; on the step's first call also the per-body
-        scale s_b^2. Returns `gradient_norm`."""
+        scale s_b^2. Returns `gradient_norm` (moving: v is not 0)."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_gradient[b] = 0.0
@@ -208,22 +208,23 @@ class IncrementalPotential:
                 self.body_momentum[b] += momentum
                 self.body_scale[b] += momentum + ti.cast(self.effects.filtered(i, tets).norm_sqr()
                                                          + self.effects.filtered(i, g).norm_sqr(), ti.f64)
-        return self.gradient_norm(tolerance, first)
+        return self.gradient_norm(tolerance, first, moving)
 
     @ti.func
-    def gradient_norm(self, tolerance, first):
+    def gradient_norm(self, tolerance, first, moving):
         """sum_b |grad_b|^2 / (tol^2 s_b^2 + floor_b): <= 1 exactly when every body has
         converged, relative to its own scale s_b or below its round-off floor.
-        On the first call a body whose momentum |M v_n| is above the floor counts as not
-        converged: v = 0 is no answer for a moving body, even one so stiff (in f32) that its
-        whole gradient is below the floor; it would stop dead."""
+        On the first call at v = 0 (not moving) a body whose momentum |M v_n| is above the floor
+        counts as not converged: v = 0 is no answer for a moving body, even one so stiff (in f32)
+        that its whole gradient is below the floor; it would stop dead. (From the guess, the
+        gradient alone tells: a guess within the tolerance is the answer.)"""
         rho = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             if first:
                 self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]
                                                      + self.body_floor[b]), float)
-                if self.body_momentum[b] > self.body_floor[b]:
+                if self.body_momentum[b] > self.body_floor[b] and not moving:
                     rho += 2.0
             rho += self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b])
         return rho
