@@ -171,3 +171,27 @@ def test_the_first_guess_extrapolates_the_last_steps_change(f64):
     sim.apply_impulse([3], (np.nan, 0.0, 0.0))           # an impulse that breaks the step
     assert not sim.step()["finite"]
     assert np.isfinite(sim.solver.newton.guess.to_numpy()).all()
+
+
+@pytest.mark.parametrize("step", ["newton", "single"])
+@pytest.mark.parametrize("method", ["linear", "corotational"])
+def test_a_guess_that_meets_the_tolerance_is_a_converged_step(f64, step, method):
+    """A free body gliding at 3 m/s: BDF2's guess v_n + (v_n - v_(n-1)) is the answer itself,
+    so its steps take no CG iteration and report converged (the rule that v = 0 is no answer
+    for a moving body applies to v = 0 alone). A guess that is not the answer is solved."""
+    sim = fem.Simulation(make_scene(box_mesh(2), method, E=1e4, nu=0.3,
+                                    solver=SolverSettings(dt=0.01, integrator="bdf2", step=step)))
+    sim.settings.sleep = False
+    X = sim.positions()
+    sim.set_state(X, np.tile([3.0, 0.0, 0.0], (len(X), 1)))
+    infos = [sim.step() for _ in range(5)]
+    assert infos[0]["integrator"] == "backward-euler"
+    assert all(i["converged"] for i in infos), infos
+    assert all(i["solver_iters"] == 0 for i in infos[1:]), infos
+    assert np.allclose(sim.velocities(), [3.0, 0.0, 0.0], atol=1e-9)
+    x, v = sim.positions(), sim.velocities()
+    v[:4] += 1.0                                  # a kick: the next guess is off
+    sim.set_state(x, v)
+    sim.step()
+    info = sim.step()                             # BDF2 again, from a guess that is not the answer
+    assert info["integrator"] == "bdf2" and info["converged"] and info["solver_iters"] > 0, info
