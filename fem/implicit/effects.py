@@ -104,8 +104,8 @@ class Effects:
         return self.penalty(i, x, self.ground[None])
 
     @ti.func
-    def pressed(self, i, x):
-        """1 where vertex i at x is pressed into the ground (it has a normal force), else 0."""
+    def pressed(self, x):
+        """1 where a vertex at x is pressed into the ground (it has a normal force), else 0."""
         out = 0
         if ti.static(self.has_ground):
             out = int(x[1] < self.ground[None])
@@ -177,5 +177,5 @@ class Effects:
             grounded[b] = 0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            if x[i][1] < self.ground[None]:
+            if self.pressed(x[i]):
                 grounded[self.model.vertex_body[i]] = 1

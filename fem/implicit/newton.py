@@ -176,7 +176,7 @@ class Newton:
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             u = ti.Vector.zero(float, 3)
-            if from_guess and not self.effects.pressed(i, x[i]):
+            if from_guess and not self.effects.pressed(x[i]):
                 u = self.effects.filtered(i, self.guess[i])
             self.velocity[i] = u
             v[i] = u

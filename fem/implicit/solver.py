@@ -120,7 +120,7 @@ class ImplicitSolver:
         scale = dt / self.last_dt if self.last_dt > 0 else 0.0          # extrapolate the last change this far
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())       # none below round-off
 
-        # where the step starts, its energy, the integrator's inertia target, the first iterate v = 0
+        # where the step starts, its energy, the guess, the integrator's inertia target, the first iterate
         p.begin(state_in.x, state_in.v)
         rotation_ms, turned = self.update_rotations(p.x, corotational, first=True, scale=scale)   # R(x_n)
         if newton:
