@@ -52,26 +52,32 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
     most the one before it (Armijo), on a case that needs halvings."""
     sim = fem.Simulation(spinning_incompressible())
     solver, potential, newton = sim.solver, sim.solver.potential, sim.solver.newton
-    energy, accept, step = potential.energy, newton.accept, solver.step
+    first, trial, energy, settle, step = (newton.evaluate_first, newton.evaluate_trial, potential.energy,
+                                          newton.settle, solver.step)
     paths, last = [], []        # per step: E of the start iterate, then of each accepted iterate
 
-    def logged_energy(*args, **kwargs):
-        energy(*args, **kwargs)
-        value = potential.body_E.to_numpy()[:1]           # E_b of the scene's one body
-        if not paths[-1]:
-            paths[-1].append(value)
-        last[:] = [value]
+    def E():
+        return potential.body_E.to_numpy()[:1]            # E_b of the scene's one body
 
-    def logged_accept(v, first):
-        if not first:
-            paths[-1].append(last[0])       # the trial just evaluated is the one accepted
-        accept(v, first)
+    def logged(kernel, start=False):
+        def call(*args):
+            out = kernel(*args)
+            last[:] = [E()]
+            if start:
+                paths[-1].append(last[0])
+            return out
+        return call
+
+    def logged_settle(*args):
+        paths[-1].append(last[0])           # the trial just evaluated is the one accepted
+        return settle(*args)
 
     def logged_step(*args):
         paths.append([])
         return step(*args)
 
-    potential.energy, newton.accept, solver.step = logged_energy, logged_accept, logged_step
+    newton.evaluate_first, newton.evaluate_trial = logged(first, start=True), logged(trial)
+    potential.energy, newton.settle, solver.step = logged(energy), logged_settle, logged_step
     halvings = sum(sim.step()["line_search_steps"] for _ in range(12))
     assert halvings > 0, "the case must exercise the line search"
     assert sum(len(path) - 1 for path in paths) >= len(paths)   # Newton iterations were accepted

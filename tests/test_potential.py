@@ -13,7 +13,7 @@ def test_the_energy_pass_leaves_the_gradient_of_its_iterate(f64):
     for _ in range(2):
         sim.step()
     potential, corner, dt = sim.solver.potential, sim.solver.elasticity.corner, sim.settings.dt
-    potential.energy(potential.v0, potential.x, potential.v, dt)
+    potential.energy(potential.v0, potential.x, potential.v, dt, 1)
     fused = corner.to_numpy()
     potential.gradient_corners(potential.x, potential.v, dt, 1)
     alone = corner.to_numpy()

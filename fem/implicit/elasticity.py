@@ -79,6 +79,11 @@ class Elasticity:
     @ti.kernel
     def stiffness_product(self, u: ti.template()):
         """corner <- (K(R) u)_e per tet."""
+        self.stiffness_pass(u)
+
+    @ti.func
+    def stiffness_pass(self, u: ti.template()):
+        """`stiffness_product`, inside another kernel."""
         ti.loop_config(serialize=self.serial_tets)
         for e in range(self.model.tet_count[None]):
             if self.sleep.tet_awake(e):

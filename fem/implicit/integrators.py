@@ -55,24 +55,33 @@ class History:
             return BDF2
         return BACKWARD_EULER
 
-    def remember(self, x, v, integrator, dt):
-        """After a step from (x, v) = (x_n, v_n) at dt: keep them for the next, if it needs them."""
+    def apply(self, target, integrator, potential, x, v):
+        """x0, v0 of the potential (x_n, v_n after its `begin`) <- the target's x^, v^; for a
+        two-step integrator, the step's start (x, v) is then kept as the next step's x_(n-1),
+        v_(n-1) (one launch; `remember` says whether the next step may use it)."""
         if integrator != "bdf2":
-            self.forget()
             return
         if self.x_prev is None:
             n = self.model.capacity.vertices
             self.x_prev, self.v_prev = ti.Vector.field(3, float, n), ti.Vector.field(3, float, n)
-        self.copy(x, v, self.x_prev, self.v_prev)
+        self.advance(potential.x0, potential.v0, x, v, target.a, target.b, int(target.b != 0.0))
+
+    def remember(self, integrator, dt):
+        """After a good step at dt: the next step of a two-step integrator may use the start
+        `apply` kept."""
+        if integrator != "bdf2":
+            self.forget()
+            return
         self.dt = dt
 
     @ti.kernel
-    def copy(self, x: ti.template(), v: ti.template(), x_to: ti.template(), v_to: ti.template()):
+    def advance(self, x0: ti.template(), v0: ti.template(), x: ti.template(), v: ti.template(), a: float,
+                b: float, multistep: ti.i32):
+        """x0, v0 <- a x_n + b x_(n-1), a v_n + b v_(n-1) (multistep; a sleeping body keeps x_n,
+        v_n: it rests exactly); then x_(n-1), v_(n-1) <- x, v, this step's start."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            x_to[i], v_to[i] = x[i], v[i]
-
-    def apply(self, target, potential):
-        """x0, v0 of the potential (x_n, v_n after its `begin`) <- the target's x^, v^."""
-        if target.b != 0.0:
-            potential.multistep_target(self.x_prev, self.v_prev, target.a, target.b)
+            if multistep and self.sleep.awake[self.model.vertex_body[i]]:
+                x0[i] = a * x0[i] + b * self.x_prev[i]
+                v0[i] = a * v0[i] + b * self.v_prev[i]
+            self.x_prev[i], self.v_prev[i] = x[i], v[i]

@@ -24,6 +24,7 @@ import numpy as np
 import taichi as ti
 
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
+TWO_I32 = ti.types.vector(2, ti.i32)
 
 
 @ti.data_oriented
@@ -59,11 +60,10 @@ class LinearSolver:
         "two-level" (PCG), None (Jacobi iteration)."""
         if preconditioner is not None:
             two_level = preconditioner == "two-level"
-            self.elasticity.stiffness_product(self.solution)
-            if self.start_residual(cM, cK, two_level) > target:
-                while self.cg_iterations(cM, cK, target, max_iterations, CG_UNROLL, two_level):
-                    pass
-            return int(self.iterations[None])
+            active, iterations = self.start_residual(cM, cK, two_level) > target, 0
+            while active:
+                active, iterations = self.cg_iterations(cM, cK, target, max_iterations, CG_UNROLL, two_level)
+            return int(iterations)
         iterations = 0
         while iterations < max_iterations:
             self.elasticity.stiffness_product(self.solution)
@@ -75,8 +75,9 @@ class LinearSolver:
 
     @ti.kernel
     def start_residual(self, cM: float, cK: float, two_level: ti.template()) -> float:
-        """r <- filtered(rhs) - H d, z <- P r, rz <- r.z (after stiffness_product(d)).
+        """r <- filtered(rhs) - H d, z <- P r, rz <- r.z, for the first guess d in `solution`.
         Returns the weighted residual sum_i w_b(i) |r_i|^2."""
+        self.elasticity.stiffness_pass(self.solution)         # K d, into the corners
         rz, rr = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
@@ -99,7 +100,7 @@ class LinearSolver:
 
     @ti.kernel
     def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template(),
-                      two_level: ti.template()) -> ti.i32:
+                      two_level: ti.template()) -> TWO_I32:
         """Up to `unroll` PCG iterations in one launch.
 
         Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
@@ -107,7 +108,8 @@ class LinearSolver:
         `Preconditioner.two_level_precondition`) with the scalar steps between them run
         serially on the device. Once the weighted |r|^2 <= target or `cap` iterations are
         done, `active` drops to 0 and the remaining passes loop over nothing, so the
-        iteration count is exact while Python launches one kernel per `unroll`. Returns `active`.
+        iteration count is exact while Python launches one kernel per `unroll`. Returns
+        (`active`, the iterations so far).
         """
         n_tets, n = self.model.tet_count[None], self.model.vertex_count[None]
         for _ in ti.static(range(unroll)):
@@ -150,7 +152,7 @@ class LinearSolver:
                 self.iterations[None] += 1
                 if not (rr > target and self.iterations[None] < cap):
                     self.active[None] = 0
-        return self.active[None]
+        return ti.Vector([self.active[None], self.iterations[None]], ti.i32)
 
     @ti.kernel
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:

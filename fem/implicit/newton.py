@@ -13,7 +13,7 @@ changing (`velocity_change`: the last iteration moved no body's velocity by more
 newton_tolerance of its size), when no body can descend further at this precision, or after
 max_newton iterations; the step's stats then say it did not converge.
 
-The step's guess for v is v_n extrapolated with the last step's change (`extrapolate`).
+The step's guess for v is v_n extrapolated with the last step's change (`first_iterate`).
 Backward Euler's first iterate is v = 0 (x = x_n), and its first Newton iteration is the
 classical one-solve (stiffness-warping) step; BDF2's first iterate is the guess itself, so its
 rotations are those of a position off by O(dt^3), not O(dt^2): that keeps its one-solve step
@@ -44,6 +44,7 @@ from fem.runtime import epsilon
 ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
 MAX_HALVINGS = 12        # line search: a >= 2^-12
 FORCING = 0.1            # inexact Newton from v = 0: CG reduces the gradient by this factor (at least)
+TWO_F64 = ti.types.vector(2, ti.f64)
 
 
 @dataclass
@@ -89,9 +90,7 @@ class Newton:
         frozen: the rotations stay those of the first iterate (the one-solve step on the ground:
         E is then quadratic but for the ground's terms, and the iterations find the contacts)."""
         p = self.potential
-        p.energy(p.v0, p.x, p.v, h, self.from_guess)         # E_b of every body at the first iterate
-        out = Solved(rho=p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 1, int(self.from_guess)))   # its tet terms came with E
-        self.accept(p.v, 1)
+        out = Solved(rho=self.evaluate_first(h, tolerance, int(self.from_guess)))   # E and grad E: the first iterate
         # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the
         # tolerance at once, and off the ground one iteration is the answer. So it is from the
         # guess: what is left of E's nonlinearity after one iteration is small, and an inexact
@@ -103,24 +102,22 @@ class Newton:
             out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
                                                preconditioner)
             out.newton_iters += 1
-            if self.start_search(tolerance) == 0:             # no body has anything left to gain
+            if self.start_search(tolerance, h) == 0:          # no body has anything left to gain
                 out.settled = True
                 break
-            for _ in range(MAX_HALVINGS + 1):
-                out.rotation_ms += self.trial(h, settings, frozen)
-                p.energy(p.v0, p.x, p.v, h)
-                if self.armijo() == 0:
+            for _ in range(MAX_HALVINGS + 1):                 # the trial iterate: each body's a_b along d
+                out.rotation_ms += self.rotate(settings, frozen)
+                if self.evaluate_trial(h) == 0:               # E_b there; every body found its decrease
                     break
                 out.halvings += 1
             else:                                             # some found no decrease at this precision
-                moved = self.give_up()                        # they keep the last iterate
-                out.rotation_ms += self.trial(h, settings, frozen)
+                moved = self.give_up(h)                       # they keep the last iterate
+                out.rotation_ms += self.rotate(settings, frozen)
                 if moved == 0:
                     break
-                p.energy(p.v0, p.x, p.v, h)
-            self.accept(p.v, 0)
-            change = self.velocity_change(settings.newton_tolerance)
-            out.rho = p.gradient_vertices(p.x, p.v0, p.v, h, tolerance, 0, 1)   # tet terms: with the last E
+                p.energy(p.v0, p.x, p.v, h, 1)
+            change, rho = self.settle(h, tolerance, settings.newton_tolerance)
+            out.rho = float(rho)
             if change <= 1.0:                                 # every body's velocity has settled
                 out.settled = True
                 break
@@ -135,7 +132,7 @@ class Newton:
             out.solver_iters = self.direction(cM, cK, 1.0, True, scale, settings, preconditioner)
             out.newton_iters = 1
             out.rho = float(self.linear.rr[None])
-            self.try_step(p.x0, p.x, p.v, h, 0)
+            self.try_step(h, 0)
         return out
 
     def direction(self, cM, cK, target, warm, scale, settings, preconditioner):
@@ -144,37 +141,30 @@ class Newton:
         self.start_direction(int(warm))
         return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner)
 
-    def trial(self, h, settings, frozen=False):
-        """The iterate of each body's own step a_b along d, and its rotations (unless frozen);
-        returns their ms."""
+    def rotate(self, settings, frozen=False):
+        """The rotations at the trial iterate (unless frozen); returns their ms."""
         p = self.potential
-        self.try_step(p.x0, p.x, p.v, h, 1)
         if frozen or not self.model.any_corotational:       # linear tets keep R = I
             return 0.0
         ms, _ = self.rotations.update(p.x, settings.rotations == "svd", twist=True)
         return ms
 
-    @ti.kernel
-    def extrapolate(self, v: ti.template(), scale: float):
-        """guess <- v_n + scale (v_n - v_(n-1)), v = v_n: the velocity extrapolated with the last
-        step's change (scaled by the ratio of the dts). On a turning body it takes a quarter to
-        a third of PCG's first iterations off (docs/method.md, section 7)."""
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            self.guess[i] = v[i] + scale * self.guess[i]
-
-    def first_iterate(self, x0, x, v, h, from_guess):
-        """The first Newton iterate: v = the guess (from_guess) or 0, x = x^ + h v; x holds x_n.
+    def first_iterate(self, x0, x, v, h, from_guess, v_n, scale):
+        """The step's guess for v, guess <- v_n + scale (v_n - v_(n-1)): the velocity extrapolated
+        with the last step's change (scaled by the ratio of the dts; on a turning body it takes a
+        quarter to a third of PCG's first iterations off, docs/method.md, section 7). Then the
+        first Newton iterate: v = the guess (from_guess) or 0, x = x^ + h v; x holds x_n.
         A vertex pressed into the ground starts at v = 0 either way: friction's curvature is that
         of sticking there, and a guess a little faster than FRICTION_SPEED would start it sliding."""
         self.from_guess = bool(from_guess)                    # v != 0: its damping terms count
-        self.start_iterate(x0, x, v, h, int(from_guess))
+        self.start_iterate(x0, x, v, h, int(from_guess), v_n, scale)
 
     @ti.kernel
     def start_iterate(self, x0: ti.template(), x: ti.template(), v: ti.template(), h: float,
-                      from_guess: ti.i32):
+                      from_guess: ti.i32, v_n: ti.template(), scale: float):
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
+            self.guess[i] = v_n[i] + scale * self.guess[i]
             u = ti.Vector.zero(float, 3)
             if from_guess and not self.effects.pressed(x[i]):
                 u = self.effects.filtered(i, self.guess[i])
@@ -193,7 +183,7 @@ class Newton:
             self.linear.solution[i] = d
 
     @ti.kernel
-    def start_search(self, tolerance: ti.f64) -> ti.i32:
+    def start_search(self, tolerance: ti.f64, h: float) -> ti.i32:
         """body_slope[b] <- grad_b E . d_b (J, < 0 where d descends). A body whose decrease
         -slope_b is above the round-off of its E_b, or whose gradient has not met the tolerance,
         searches, from a_b = 1; the others have nothing left to gain (a_b = 0). Returns how many
@@ -215,10 +205,40 @@ class Newton:
                                                                or unconverged))
             self.body_step[b] = self.searching[b]
             count += self.searching[b]
+        self.step_along(h, 1)                                 # the first trial
         return count
 
+    # ------------------------------------------------------------ the iterates' kernels: one launch each
+
     @ti.kernel
-    def armijo(self) -> ti.i32:
+    def evaluate_first(self, h: float, tolerance: ti.f64, moving: ti.i32) -> ti.f64:
+        """E_b and -grad E at the first iterate (moving=0: v = 0), which becomes the accepted
+        one; returns the gradient's weighted norm rho (converged: rho <= 1)."""
+        self.potential.iterate_energy(h, moving)              # with the tet terms of grad E
+        rho = self.potential.iterate_gradient(h, tolerance, 1, moving)
+        self.accept(1)
+        return rho
+
+    @ti.kernel
+    def evaluate_trial(self, h: float) -> ti.i32:
+        """E_b at the trial iterate, then `armijo`, then the next trial (a body done keeps its
+        a_b, and its iterate: the same numbers); returns how many bodies still search."""
+        self.potential.iterate_energy(h, 1)
+        left = self.armijo()
+        self.step_along(h, 1)
+        return left
+
+    @ti.kernel
+    def settle(self, h: float, tolerance: ti.f64, newton_tolerance: ti.f64) -> TWO_F64:
+        """The trial becomes the accepted iterate; returns (`velocity_change`, rho at it), its
+        -grad E from the tet terms the energy pass left."""
+        self.accept(0)
+        change = self.velocity_change(newton_tolerance)
+        rho = self.potential.iterate_gradient(h, tolerance, 0, 1)
+        return ti.Vector([change, rho], ti.f64)
+
+    @ti.func
+    def armijo(self):
         """A searching body whose E_b fell by at least ARMIJO a_b |slope_b| is done; the others
         halve a_b. Returns how many still search."""
         left = 0
@@ -238,21 +258,28 @@ class Newton:
         return left
 
     @ti.kernel
-    def give_up(self) -> ti.i32:
-        """Bodies that found no decrease (at this precision) stay where they are: a_b = 0.
-        Returns how many bodies still move."""
+    def give_up(self, h: float) -> ti.i32:
+        """Bodies that found no decrease (at this precision) stay where they are: a_b = 0, and
+        the trial iterate with those steps. Returns how many bodies still move."""
         moving = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             if self.searching[b]:
                 self.body_step[b] = 0.0
             moving += int(self.body_step[b] > 0)
+        self.step_along(h, 1)
         return moving
 
     @ti.kernel
-    def try_step(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt: float, each: ti.i32):
-        """v <- velocity + a d, x <- x^ + dt v: a point on the Newton direction, a = 1 for
+    def try_step(self, h: float, each: ti.i32):
+        """`step_along`: the iterate v <- velocity + a d, x <- x^ + h v."""
+        self.step_along(h, each)
+
+    @ti.func
+    def step_along(self, h, each):
+        """v <- velocity + a d, x <- x^ + h v: a point on the Newton direction, a = 1 for
         every body, or (each = 1) each body's own step a_b."""
+        x0, x, v = ti.static(self.potential.x0, self.potential.x, self.potential.v)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             a = 1.0
@@ -260,12 +287,13 @@ class Newton:
                 a = self.body_step[self.model.vertex_body[i]]
             u = self.velocity[i] + a * self.linear.solution[i]
             v[i] = u
-            x[i] = x0[i] + dt * u
+            x[i] = x0[i] + h * u
 
-    @ti.kernel
-    def accept(self, v: ti.template(), first: ti.i32):
+    @ti.func
+    def accept(self, first):
         """The iterate v (and its energies E_b) becomes the accepted one; on the step's first
         iterate E_b also sets its resolution, the round-off of a float64 sum of that size."""
+        v = ti.static(self.potential.v)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_E_accepted[b] = self.potential.body_E[b]
@@ -275,8 +303,8 @@ class Newton:
         for i in range(self.model.vertex_count[None]):
             self.velocity[i] = v[i]
 
-    @ti.kernel
-    def velocity_change(self, tolerance: ti.f64) -> ti.f64:
+    @ti.func
+    def velocity_change(self, tolerance):
         """sum_b |a_b d_b|_M^2 / (tol^2 |v_b|_M^2 + floor_b): <= 1 exactly when no body's velocity
         moved by more than tol of its size (or by round-off) in the last Newton iteration."""
         ti.loop_config(serialize=True)

@@ -72,35 +72,37 @@ class IncrementalPotential:
         return 1 + h * self.effects.alpha, h * self.effects.beta + h * h
 
     @ti.kernel
-    def begin(self, x: ti.template(), v: ti.template()):
+    def begin(self, x: ti.template(), v: ti.template()) -> ti.i32:
         """x0, v0 <- the step's start x_n, v_n (backward Euler's inertia target); the iterate x, v
-        too (also how checks copy a state in)."""
+        too (also how checks copy a state in). Returns how many positions differ from the last
+        iterate's: 0 when the step starts where the last one ended."""
+        moved = 0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
+            moved += int((self.x[i] != x[i]).any())
             self.x0[i], self.v0[i] = x[i], v[i]
             self.x[i], self.v[i] = x[i], v[i]
-
-    @ti.kernel
-    def multistep_target(self, x_prev: ti.template(), v_prev: ti.template(), a: float, b: float):
-        """x0, v0 <- a x_n + b x_(n-1), a v_n + b v_(n-1): a two-step integrator's inertia target
-        (after `begin`). A sleeping body keeps x_n, v_n: it rests exactly."""
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            if self.sleep.awake[self.model.vertex_body[i]]:
-                self.x0[i] = a * self.x0[i] + b * x_prev[i]
-                self.v0[i] = a * self.v0[i] + b * v_prev[i]
+        return moved
 
     # ------------------------------------------------------------ E
 
-    def energy(self, v0, x, v, h, moving=True):
+    @ti.kernel
+    def energy(self, v0: ti.template(), x: ti.template(), v: ti.template(), h: float, moving: ti.i32):
         """E_b(v) of every body at x = x^ + h v into body_E (J, float64), with the rotations at
         x already extracted, and the tet terms of grad E there (gradient_vertices finishes it).
-        moving=False: v is 0 (backward Euler's first iterate), so the damping terms are too."""
+        moving=0: v is 0 (backward Euler's first iterate), so the damping terms are too.
+        (Newton's kernels call its two passes themselves, with what comes next.)"""
         self.energy_vertices(x, v0, v, h)
-        self.energy_tets(x, v, h, int(moving))
+        self.energy_tets(x, v, h, moving)
 
-    @ti.kernel
-    def energy_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt: float):
+    @ti.func
+    def iterate_energy(self, h, moving):
+        """`energy` at the iterate x, v (with x^, v^ = x0, v0), inside another kernel."""
+        self.energy_vertices(self.x, self.v0, self.v, h)
+        self.energy_tets(self.x, self.v, h, moving)
+
+    @ti.func
+    def energy_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt):
         """body_E[b] <- 1/2 |v_b - v^|_M^2 + dt alpha/2 |v_b|_M^2 - dt v_b^T M g + the ground's
         contact and friction terms, in float64 (J)."""
         ti.loop_config(serialize=True)
@@ -117,8 +119,8 @@ class IncrementalPotential:
                 e += self.effects.step_contact_energy(i, x[i]) + self.effects.friction_energy(i, v[i], dt)
             self.body_E[self.model.vertex_body[i]] += e
 
-    @ti.kernel
-    def energy_tets(self, x: ti.template(), v: ti.template(), dt: float, moving: ti.i32):
+    @ti.func
+    def energy_tets(self, x: ti.template(), v: ti.template(), dt, moving):
         """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K(R) v_b, summed in float64 (J), a chunk of
         tets at a time (as in Safeguards.body_energy); corner <- the tet terms of grad E at
         (x, v), in the same pass: a trial iterate the line search accepts needs its gradient
@@ -182,6 +184,17 @@ class IncrementalPotential:
     @ti.kernel
     def gradient_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt: float,
                           tolerance: ti.f64, first: ti.i32, moving: ti.i32) -> ti.f64:
+        """rhs <- -grad E at (x, v) from the tet terms in corner (`gather_gradient`); returns rho."""
+        return self.gather_gradient(x, v0, v, dt, tolerance, first, moving)
+
+    @ti.func
+    def iterate_gradient(self, h, tolerance, first, moving):
+        """`gather_gradient` at the iterate x, v, inside another kernel; returns rho."""
+        return self.gather_gradient(self.x, self.v0, self.v, h, tolerance, first, moving)
+
+    @ti.func
+    def gather_gradient(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt, tolerance, first,
+                        moving):
         """rhs <- -grad E = M v^ + dt M g - (1 + dt alpha) M v - (gathered tet terms) + (the
         ground's), and the per-body |grad_b|^2; on the step's first call also the per-body
         scale s_b^2. Returns `gradient_norm` (moving: v is not 0)."""

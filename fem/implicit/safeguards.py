@@ -20,6 +20,8 @@ Fields (bodies of the capacity; energies summed in float64):
     body_kinetic (bodies,)       J: kinetic energy relative to the centre of mass, then the
                                  factor its relative velocities are scaled by
     body_pinned (bodies,)        1: the body has pinned vertices
+    body_elastic (bodies,)       its elastic energy when last summed, J: a step that starts where
+                                 the last one ended (the same positions and rotations) reuses it
 """
 
 import taichi as ti
@@ -30,6 +32,7 @@ from fem.implicit.potential import ROUNDOFF
 from fem.runtime import epsilon
 
 BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
+TWO_I32 = ti.types.vector(2, ti.i32)
 
 
 @ti.data_oriented
@@ -48,9 +51,27 @@ class Safeguards:
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)
         self.body_kinetic = ti.field(ti.f64, nb)
         self.body_pinned = ti.field(ti.i32, nb)
+        self.body_elastic = ti.field(ti.f64, nb)
 
     @ti.kernel
-    def check_finite(self, x: ti.template(), v: ti.template()) -> ti.i32:
+    def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), x: ti.template(),
+                   v: ti.template(), h: float, dt: float, momentum: ti.template(),
+                   energy: ti.template()) -> TWO_I32:
+        """The step's last checks on its iterate x, v, in one launch: returns (vertices not
+        finite, bodies energy-limited). momentum: `restore_momentum`; energy: the total
+        energy AFTER and `limit_energy` (x_n: the step's start). The caller discards a result
+        that is not finite, whatever these did with it."""
+        bad = self.check_finite(x, v)
+        if ti.static(momentum):
+            self.restore_momentum(v0, x0, x, v, h)
+        limited = 0
+        if ti.static(energy):
+            self.total_energy(x, v, AFTER, 1)
+            limited = self.limit_energy(x_n, x, v, dt)
+        return ti.Vector([bad, limited], ti.i32)
+
+    @ti.func
+    def check_finite(self, x: ti.template(), v: ti.template()):
         """The count of vertices with a non-finite position or velocity."""
         bad = 0
         ti.loop_config(serialize=self.serial_vertices)
@@ -59,9 +80,8 @@ class Safeguards:
                 bad += 1
         return bad
 
-    @ti.kernel
-    def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(),
-                         dt: float):
+    @ti.func
+    def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(), dt):
         """Shift each unpinned body's velocity uniformly so that its momentum is exactly backward
         Euler's, (1 + dt alpha) sum m v = sum m v^ + dt M g."""
         ti.loop_config(serialize=True)
@@ -88,30 +108,38 @@ class Safeguards:
                 x[i] = x0[i] + dt * v[i]
 
     @ti.kernel
-    def body_energy(self, x: ti.template(), v: ti.template(), when: ti.i32):
+    def body_energy(self, x: ti.template(), v: ti.template(), when: ti.i32, tets: ti.i32):
+        """`total_energy` (tets=0: the elastic energies of the last sum, for the same x and R)."""
+        self.total_energy(x, v, when, tets)
+
+    @ti.func
+    def total_energy(self, x: ti.template(), v: ti.template(), when, tets):
         """body_total[when, b] <- kinetic + elastic + gravitational (+ the ground's contact) energy
         of body b (J, float64),
-        elastic with the rotations extracted at x; body_total_size[when, b] <- the sum of the
-        sizes of its terms (J), the scale of its round-off. when: BEFORE or AFTER the step."""
+        elastic with the rotations extracted at x (kept in body_elastic; tets=0: taken from it);
+        body_total_size[when, b] <- the sum of the sizes of its terms (J), the scale of its
+        round-off. when: BEFORE or AFTER the step."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            self.body_total[when, b], self.body_total_size[when, b] = 0.0, 0.0
+            if tets:
+                self.body_elastic[b] = 0.0
         # A body's tets are contiguous: each chunk of tets sums into a running total and adds it
-        # to body_total once per body it meets, not once per tet (threads would fight over it).
+        # to body_elastic once per body it meets, not once per tet (threads would fight over it).
         n = self.model.tet_count[None]
         ti.loop_config(serialize=self.serial_tets)
-        for c in range((n + TET_CHUNK - 1) // TET_CHUNK):
+        for c in range(tets * ((n + TET_CHUNK - 1) // TET_CHUNK)):
             body, elastic = -1, ti.cast(0.0, ti.f64)
             for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
                 if self.model.tet_body[e] != body:
                     if body >= 0:
-                        self.body_total[when, body] += elastic
-                        self.body_total_size[when, body] += elastic
+                        self.body_elastic[body] += elastic
                     body, elastic = self.model.tet_body[e], 0.0
                 elastic += self.elasticity.elastic_energy(x, e)
             if body >= 0:
-                self.body_total[when, body] += elastic
-                self.body_total_size[when, body] += elastic
+                self.body_elastic[body] += elastic
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_total[when, b], self.body_total_size[when, b] = self.body_elastic[b], self.body_elastic[b]
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
@@ -123,8 +151,8 @@ class Safeguards:
             self.body_total[when, self.model.vertex_body[i]] += kinetic + potential
             self.body_total_size[when, self.model.vertex_body[i]] += kinetic + ti.abs(potential)
 
-    @ti.kernel
-    def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt: float) -> ti.i32:
+    @ti.func
+    def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt):
         """Scale v - v_cm of every body whose energy rose (v_cm = 0 for pinned bodies) so that
         its kinetic energy falls by the rise. Where the rise exceeds that kinetic energy (a body
         nearly at rest in a non-convex state), the body stays where it was (x0), moving on with

@@ -21,7 +21,7 @@ from fem.implicit.newton import Newton
 from fem.implicit.potential import ROUNDOFF, IncrementalPotential
 from fem.implicit.preconditioner import Preconditioner
 from fem.implicit.rotations import Rotations
-from fem.implicit.safeguards import AFTER, BEFORE, Safeguards
+from fem.implicit.safeguards import BEFORE, Safeguards
 from fem.implicit.sleep import Sleep
 from fem.runtime import epsilon, serial_loops
 
@@ -121,14 +121,20 @@ class ImplicitSolver:
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())       # none below round-off
 
         # where the step starts, its energy, the guess, the integrator's inertia target, the first iterate
-        p.begin(state_in.x, state_in.v)
-        rotation_ms, turned = self.update_rotations(p.x, corotational, first=True, scale=scale)   # R(x_n)
+        moved = p.begin(state_in.x, state_in.v)
+        # a Newton step that starts where the last one ended has R(x_n) and the elastic energies
+        # there already: its last trial's (the rotations extracted at the last step's end)
+        ended_here = newton and moved == 0 and self.end_known == model.version
+        rotation_ms, turned = 0.0, 0.0
+        if not ended_here:
+            rotation_ms, turned = self.update_rotations(p.x, corotational, first=True,    # R(x_n)
+                                                        scale=scale if self.turn_known else 0.0)
+        self.turn_known = not ended_here                                # the turn of this step, recorded
         if newton:
-            self.safeguards.body_energy(p.x, p.v, BEFORE)                # x, v = x_n, v_n still
-        self.newton.extrapolate(p.v0, scale)                            # the guess for v
-        self.history.apply(target, p)                                   # x^, v^ (backward Euler: x_n, v_n)
-        # the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
-        self.newton.first_iterate(p.x0, p.x, p.v, h, target.b != 0.0)
+            self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
+        self.history.apply(target, settings.integrator, p, state_in.x, state_in.v)   # x^, v^ (backward Euler: x_n, v_n)
+        # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
+        self.newton.first_iterate(p.x0, p.x, p.v, h, target.b != 0.0, state_in.v, scale)
         if target.b != 0.0:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
         if ground:
@@ -148,16 +154,15 @@ class ImplicitSolver:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
         # the safeguards: finite, momentum (where no ground pushes), energy
-        finite = self.safeguards.check_finite(p.x, p.v) == 0 and math.isfinite(solved.rho)
-        limited = 0
-        if finite and not ground:
-            self.safeguards.restore_momentum(p.v0, p.x0, p.x, p.v, h)
-        if finite and newton:
-            self.safeguards.body_energy(p.x, p.v, AFTER)
-            limited = self.safeguards.limit_energy(state_in.x, p.x, p.v, dt)
+        bad, limited = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground, newton)
+        finite = bad == 0 and math.isfinite(solved.rho)
+        limited = int(limited) if finite else 0
+        # the rotations and elastic energies the next step can reuse: those of its x_n, unless
+        # a body was sent back to x_n
+        self.end_known = model.version if newton and finite and limited == 0 else None
         self.finish(state_in.v, state_out.x, state_out.v, int(finite))
         if finite:
-            self.history.remember(state_in.x, state_in.v, settings.integrator, dt)
+            self.history.remember(settings.integrator, dt)
         else:
             self.history.forget()
         self.last_dt = dt
@@ -212,6 +217,8 @@ class ImplicitSolver:
         self.history.forget()
         self.preconditioning.forget()                         # the blocks are for other rotations
         self.last_dt = 0.0                                    # s, the dt of the step that made the change
+        self.end_known = None         # the model version whose R and elastic energies at x_n are known
+        self.turn_known = False       # the rotations' turn field holds the last step's turn
 
     def refresh(self, cM, cK, h, dt):
         """Re-derive what depends on the model's methods and materials (after a live edit), the
