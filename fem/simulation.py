@@ -205,7 +205,7 @@ class Simulation:
         same fields."""
         work = self.solver.potential
         if x is None:
-            work.begin(self.state.x, self.state.v)
+            work.begin(self.state.x, self.state.v, self.state.x)
         else:
             self.model.write(work.x, np.asarray(x, np.float64))
             work.v.fill(0.0)

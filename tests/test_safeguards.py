@@ -50,3 +50,24 @@ def test_total_energy_never_rises_with_damping(f64, method):
     energies = np.array(energies)
     assert energies[-1] < 0.5 * energies[0]
     assert np.all(np.diff(energies) <= 1e-6 * energies[0])
+
+
+def test_a_state_changed_behind_the_steps_back_is_measured_again(f64):
+    """A Newton step that starts where the last one ended reuses its rotations and elastic
+    energies at x_n. Positions changed any other way (here written into the state directly,
+    not through set_state, and read by stats in between) are seen: a body stretched by 10 %
+    springs back with the energy it was given, where a stale start (at rest, no elastic
+    energy) would have the safeguard take that energy away. (Backward Euler: BDF2 would also
+    take its history from before the change, which only set_state forgets.)"""
+    sim = fem.Simulation(make_scene(box_mesh(2), "corotational", E=1e4, nu=0.3, density=100.0),
+                         integrator="backward-euler")
+    for _ in range(3):
+        sim.step()                                       # at rest: each step ends where it started
+    x = sim.positions()
+    centre = x.mean(axis=0)
+    sim.state.load(centre + 1.1 * (x - centre), sim.velocities())
+    stretched = sim.stats()["total_energy"]
+    assert stretched > 0
+    info = sim.step()
+    assert info["energy_limited"] == 0
+    assert sim.stats()["kinetic_energy"] > 0.1 * stretched

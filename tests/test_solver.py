@@ -65,3 +65,13 @@ def test_switched_off_effects_launch_no_work():
                                           effects=Effects(gravity=(0, -9.81, 0), ground=0.0)))
     assert ground["start_contacts"] == 5
     assert ground["gradient_corners"] == linear["gradient_corners"]   # gravity adds code, not launches
+
+
+def test_a_newton_step_starts_from_the_rotations_its_last_step_ended_with():
+    """R(x_n) of a Newton step is its last step's last trial's, not extracted again: at rest
+    (no iteration) BDF2 extracts rotations once a step, at its first iterate, and backward
+    Euler, whose first iterate is x_n, not at all."""
+    mesh = box_mesh(2)
+    assert launches_per_step(make_scene(mesh, "corotational"))["extract_rotations"] == 5
+    backward_euler = make_scene(mesh, "corotational", solver=SolverSettings(integrator="backward-euler"))
+    assert launches_per_step(backward_euler)["extract_rotations"] == 0

@@ -89,7 +89,7 @@ def run_variant(sim, variant, times, plan):
             break
     energy = sum_energy(stats)
     memory = (solver.memory_bytes if variant.solver == "direct" else
-              field_bytes(sim.model, sim.state, *sim.solver.parts))
+              field_bytes(sim.model, sim.state, sim.solver, *sim.solver.parts))
     return {"infos": infos, "snapshots": snapshots, "run_s": time.perf_counter() - start,
             "volume_drift": volume_drift, "energy_drift": energy / energy0 - 1 if energy0 > 0 else None,
             "memory_bytes": memory, "stopped_early": len(infos) < n_steps,

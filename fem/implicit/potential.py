@@ -72,14 +72,14 @@ class IncrementalPotential:
         return 1 + h * self.effects.alpha, h * self.effects.beta + h * h
 
     @ti.kernel
-    def begin(self, x: ti.template(), v: ti.template()) -> ti.i32:
+    def begin(self, x: ti.template(), v: ti.template(), last: ti.template()) -> ti.i32:
         """x0, v0 <- the step's start x_n, v_n (backward Euler's inertia target); the iterate x, v
-        too (also how checks copy a state in). Returns how many positions differ from the last
-        iterate's: 0 when the step starts where the last one ended."""
+        too (also how checks copy a state in). Returns how many positions differ from `last`
+        (the solver's: where its last step ended)."""
         moved = 0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            moved += int((self.x[i] != x[i]).any())
+            moved += int((last[i] != x[i]).any())
             self.x0[i], self.v0[i] = x[i], v[i]
             self.x[i], self.v[i] = x[i], v[i]
         return moved

@@ -92,6 +92,7 @@ class ImplicitSolver:
         self.newton = Newton(model, self.potential, self.linear, self.rotations, self.effects, self.sleep, switches)
         self.safeguards = Safeguards(model, self.elasticity, self.effects, self.sleep, switches)
         self.history = History(model, self.sleep, switches)
+        self.x_end = ti.Vector.field(3, float, model.capacity.vertices)   # m: where the last step ended
 
     @property
     def parts(self):
@@ -121,7 +122,7 @@ class ImplicitSolver:
         tolerance = max(settings.tolerance, ROUNDOFF * epsilon())       # none below round-off
 
         # where the step starts, its energy, the guess, the integrator's inertia target, the first iterate
-        moved = p.begin(state_in.x, state_in.v)
+        moved = p.begin(state_in.x, state_in.v, self.x_end)
         # a Newton step that starts where the last one ended has R(x_n) and the elastic energies
         # there already: its last trial's (the rotations extracted at the last step's end)
         ended_here = newton and moved == 0 and self.end_known == model.version
@@ -276,11 +277,12 @@ class ImplicitSolver:
 
     @ti.kernel
     def finish(self, v_n: ti.template(), x: ti.template(), v: ti.template(), good: ti.i32):
-        """state_out <- the iterate; the last change <- v - v_n for the next step's guess
-        (0 after a step whose result is not finite)."""
+        """state_out <- the iterate (and x_end <- its x); the last change <- v - v_n for the next
+        step's guess (0 after a step whose result is not finite)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             x[i], v[i] = self.potential.x[i], self.potential.v[i]
+            self.x_end[i] = self.potential.x[i]
             dv = ti.Vector.zero(float, 3)
             if good:
                 dv = self.potential.v[i] - v_n[i]
