@@ -2,8 +2,9 @@
 
 The solver makes its parts once per Model and `Switches` (fem/pool.py) and hands each the
 parts it reads; each part owns its fields and kernels (fem/implicit/__init__.py lists them).
-What the step remembers between steps: the rotations (warm starts), the last velocity
-change (the first guess), the integrator's history and which bodies sleep.
+What the step remembers between steps: the rotations (warm starts, and after a Newton step
+those of where it ended: the next step's R(x_n)), the last velocity change (the first guess),
+the integrator's history and which bodies sleep.
 """
 
 import math
