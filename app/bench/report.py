@@ -140,11 +140,12 @@ LIMITS = {
               "Jacobi's 0.9); the rest is the step's fixed work, about 6 ms: rotations 2.5, the first product "
               "and the start of PCG 1, the gradient 0.9, the block-Jacobi build 0.3 (1 ms, one step in four), "
               "and a dozen small passes; the machine's spread between runs is about 10 %",
-    "newton": "2.35 Newton iterations a step at 1e-3, each with its own PCG solve and a line-search trial "
-              "with its own rotation extraction, then energy and gradient in one pass (float64 sums). Kernel "
-              "profile of a box50k Newton step (about 33 ms): rotations 8.2 ms (three passes), energy and "
-              "gradient 8.4, PCG 10 (about 10 iterations), the first products 2.9, the block-Jacobi build 1, "
-              "the energy before and after 1.1. Tried: blocks rebuilt only when stale (as the one-solve step "
+    "newton": "1.4 Newton iterations a step at 1e-3 (BDF2, from the extrapolated guess), each with its own "
+              "PCG solve and a line-search trial with its own rotation extraction, then energy and gradient "
+              "in one pass (float64 sums); R(x_n) is the last step's. Kernel profile of a box50k Newton step "
+              "(about 42 ms on a slow run): rotations 7.6 ms (2.4 passes: the first iterate and each trial), "
+              "energy and gradient 9 (the first iterate's and each trial's), PCG 17 (about 10 iterations), "
+              "the block-Jacobi build 1.5, the safeguards 1. Tried: blocks rebuilt only when stale (as the one-solve step "
               "does) need 14.7 -> 22.3 PCG iterations a step on epcot, as the twist term moves with the "
               "stretch; a tighter forcing term (0.03) saves half a Newton iteration on box50k and costs as "
               "much in PCG. Newton buys the promise that energy never rises, not accuracy",
