@@ -205,7 +205,7 @@ class Newton:
                                                                or unconverged))
             self.body_step[b] = self.searching[b]
             count += self.searching[b]
-        self.step_along(h, 1)                                 # the first trial
+        self.step_along(h, 1, int(count > 0))                 # the first trial
         return count
 
     # ------------------------------------------------------------ the iterates' kernels: one launch each
@@ -225,7 +225,7 @@ class Newton:
         a_b, and its iterate: the same numbers); returns how many bodies still search."""
         self.potential.iterate_energy(h, 1)
         left = self.armijo()
-        self.step_along(h, 1)
+        self.step_along(h, 1, int(left > 0))                  # none left: x, v stay the accepted trial
         return left
 
     @ti.kernel
@@ -267,21 +267,21 @@ class Newton:
             if self.searching[b]:
                 self.body_step[b] = 0.0
             moving += int(self.body_step[b] > 0)
-        self.step_along(h, 1)
+        self.step_along(h, 1, 1)
         return moving
 
     @ti.kernel
     def try_step(self, h: float, each: ti.i32):
         """`step_along`: the iterate v <- velocity + a d, x <- x^ + h v."""
-        self.step_along(h, each)
+        self.step_along(h, each, 1)
 
     @ti.func
-    def step_along(self, h, each):
+    def step_along(self, h, each, on):
         """v <- velocity + a d, x <- x^ + h v: a point on the Newton direction, a = 1 for
-        every body, or (each = 1) each body's own step a_b."""
+        every body, or (each = 1) each body's own step a_b. on = 0: the pass loops over nothing."""
         x0, x, v = ti.static(self.potential.x0, self.potential.x, self.potential.v)
         ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
+        for i in range(self.model.vertex_count[None] * on):
             a = 1.0
             if each:
                 a = self.body_step[self.model.vertex_body[i]]
