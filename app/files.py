@@ -168,12 +168,14 @@ def interrupt_on_sigterm():
         if len(arrived) == 1:
             raise KeyboardInterrupt
 
-    with signals_handled([signal.SIGINT, signal.SIGTERM], interrupt):
-        yield
-    if arrived:
-        with contextlib.suppress(ValueError):       # not the main thread
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with signals_handled([signal.SIGINT, signal.SIGTERM], interrupt):
+            yield
+    finally:
+        if arrived:
+            with contextlib.suppress(ValueError):       # not the main thread
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @contextlib.contextmanager
@@ -182,7 +184,16 @@ def interrupts_deferred():
     frame half sent to the encoder, or a container half closed, would leave a file no
     player can open."""
     arrived = []
+    try:
+        outer = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    except ValueError:            # not the main thread
+        outer = {}
     with signals_handled([signal.SIGINT, signal.SIGTERM], lambda signum, frame: arrived.append(signum)):
         yield
     if arrived:
-        raise KeyboardInterrupt
+        # Hand the signal to the handler that was in place (interrupt_on_sigterm's counts it).
+        handler = outer.get(arrived[0])
+        if callable(handler):
+            handler(arrived[0], None)
+        elif handler != signal.SIG_IGN:
+            raise KeyboardInterrupt

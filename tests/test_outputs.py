@@ -293,3 +293,48 @@ def test_an_interrupted_overwriting_export_says_which_frames_are_older(here, mon
     assert code == 130
     assert "kept the 2 complete frames" in err and "frame_00002.png .. frame_00004.png are older" in err
     assert (out / "frame_00004.png").read_text() == "an earlier export's frame"
+
+
+
+@pytest.fixture
+def handlers_kept():
+    """A real signal leaves SIGTERM and SIGINT ignored after the run (its clean-up must not be
+    cut short); put this test process's own handlers back."""
+    kept = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for number, handler in kept.items():
+        signal.signal(number, handler)
+
+
+def test_a_signal_just_after_a_frame_lands_counts_that_frame(here, monkeypatch, handlers_kept):
+    """CI once saw 6 frames on disk and "kept the 5 complete frames": the SIGTERM came
+    between the frame's rename and the count. The two now move together."""
+    from app.commands import export
+    real, calls = export.write_png, []
+
+    def write_png(*args, **kwargs):
+        real(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)     # the frame is in place, the count not yet
+
+    monkeypatch.setattr(export, "write_png", write_png)
+    code, stdout, err = run(*SMALL_EXPORT, "--out", "o")
+    assert code == 130, err
+    assert sorted(p.name for p in (here / "o").glob("frame_*.png")) == ["frame_00000.png", "frame_00001.png"]
+    assert "kept the 2 complete frames" in err and "older" not in err
+
+
+def test_a_deferred_signal_goes_to_the_handler_that_was_in_place(handlers_kept):
+    """interrupts_deferred hands a signal to interrupt_on_sigterm's handler, which counts it,
+    so that later signals during the clean-up are ignored."""
+    reached = []
+    with pytest.raises(KeyboardInterrupt):
+        with files.interrupt_on_sigterm():
+            with files.interrupts_deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.01)
+                reached.append("end of the deferred block")
+            reached.append("after it")
+    assert reached == ["end of the deferred block"]
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN

@@ -143,9 +143,10 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
                 rendered = time.perf_counter()
 
                 lines = view.caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
-                write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines),
-                          f"kept the {index} complete frames before it")
-                written = index + 1
+                with interrupts_deferred():      # the file in place and the count move together
+                    write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines),
+                              f"kept the {index} complete frames before it")
+                    written = index + 1
                 if writer.active:
                     speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
                     writer.append(view.annotated(picture, lines + [speed]))
@@ -159,7 +160,8 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
                 f"{FRAME_NAME.format(written - 1)}" if written else "no frame was complete")
         also = f" and {video} with {writer.frames} frames" if writer.active and writer.frames else ""
         older = older_frames(out, written)
-        earlier = f"; {older[0]} .. {older[-1]} are older, not from this export" if older else ""
+        earlier = (f"; {' .. '.join(dict.fromkeys([older[0], older[-1]]))} "
+                   f"{'are' if len(older) > 1 else 'is'} older, not from this export" if older else "")
         print(f"interrupted at frame {written} of {args.frames}: {kept}{also}{earlier}", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(summary(timings, steps, view.renderer.name))

@@ -15,7 +15,7 @@ import fem
 import scenes
 from app import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, device
 from app import outputs
-from app.files import atomic_open, refuse_overwrite
+from app.files import atomic_open, interrupts_deferred, refuse_overwrite
 from app.progress import Progress
 from fem.mesh import mesh_quality
 
@@ -45,9 +45,10 @@ def run(args) -> int:
             for _ in range(args.steps):
                 sim.step()
                 row = sim.stats() if out else sim.last
-                if out:
-                    out.write(json.dumps(row) + "\n")
-                rows.append(row)
+                with interrupts_deferred():      # the row in the file and the count move together
+                    if out:
+                        out.write(json.dumps(row) + "\n")
+                    rows.append(row)
                 progress.update()
     except KeyboardInterrupt:
         kept = f"; kept its {len(rows)} complete rows in {args.stats}" if to_file else ""
