@@ -16,6 +16,12 @@ FIGURES = ["accuracy_vs_time", "volume_bunny", "volume_cube", "volume_cube86", "
            "frame25_builtin", "epcot_compare", "epcot_compare_volume", "hard_case_energy", "integrator_order"]
 # Numbers agree to 5 % or 0.01 (f32 round-off in long runs, a few solver iterations more or less).
 RELATIVE, ABSOLUTE = 0.05, 1e-2
+# A run that blows up amplifies round-off, and round-off differs between processors (the same kernels
+# compiled for AVX-512 or AVX2 add in another order): the one-solve step at dt 0.5 s on the hard case
+# agrees for its first steps only, then rises to a different height. Its first FIRST_STEPS energies are
+# compared, and what the figure says of the rest: that it rises.
+UNSTABLE = {"hard_case_energy.total_energy.single"}
+FIRST_STEPS = 4
 
 
 def differences(made, committed, where=""):
@@ -25,10 +31,15 @@ def differences(made, committed, where=""):
             return [(where, sorted(made), sorted(committed))]
         return [d for key in made for d in differences(made[key], committed[key], f"{where}.{key}")]
     if isinstance(made, list) and isinstance(committed, list):
+        if where in UNSTABLE:
+            made, committed = made[:FIRST_STEPS], committed[:FIRST_STEPS]
         if len(made) != len(committed):
             return [(where, f"{len(made)} values", f"{len(committed)} values")]
         return [d for i, (a, b) in enumerate(zip(made, committed)) for d in differences(a, b, f"{where}[{i}]")]
     numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (made, committed))
+    if numbers and where.replace(".largest_rise_over_start", ".total_energy") in UNSTABLE:
+        # The figure says "rises to ... times its start": at least doubling in one step, both times.
+        return [] if min(made, committed) > 1 else [(where, made, committed)]
     if numbers:
         return [] if math.isclose(made, committed, rel_tol=RELATIVE, abs_tol=ABSOLUTE) else [(where, made, committed)]
     return [] if made == committed or where.endswith("source") else [(where, made, committed)]
@@ -55,3 +66,14 @@ def test_the_comparison_finds_a_figure_that_no_longer_matches():
     assert differences({"total_energy": {"single": [1.0, 5.33]}}, committed) == [
         (".total_energy.single[1]", 5.33, 9.25)]
     assert differences({"total_energy": {"single": [1.0, 9.26]}}, committed) == []
+
+
+def test_a_run_that_blows_up_is_compared_by_its_first_steps_and_its_rise():
+    committed = {"total_energy": {"single": [1.0, 9.25, 30.0, 90.0, 3e4]}, "largest_rise_over_start": {"single": 1e4}}
+    other_processor = {"total_energy": {"single": [1.0, 9.26, 30.1, 90.2, 2e3]}, "largest_rise_over_start": {"single": 1e3}}
+    assert differences(other_processor, committed, "hard_case_energy") == []
+    early = {"total_energy": {"single": [1.0, 5.33, 30.0, 90.0, 3e4]}, "largest_rise_over_start": {"single": 1e4}}
+    assert differences(early, committed, "hard_case_energy") == [("hard_case_energy.total_energy.single[1]", 5.33, 9.25)]
+    tamed = {"total_energy": {"single": [1.0, 9.25, 30.0, 90.0, 3e4]}, "largest_rise_over_start": {"single": 0.0}}
+    assert differences(tamed, committed, "hard_case_energy") == [
+        ("hard_case_energy.largest_rise_over_start.single", 0.0, 1e4)]
