@@ -154,8 +154,9 @@ LIMITS = {
               "what a user would get, symbolic analysis reused",
     "memory": "per tet: the per-corner buffer of the gather (48 B), Bm and Bm R^T (72 B), the quaternion, last "
               "turn and twist (32 B), the tet's corners and their adjacency slots (32 B), rest volume and body "
-              "(8 B); per vertex, 3-vectors of 12 B in f32: the rest shape, the two swapped states, the "
-              "potential's, CG's, Newton's and BDF2's history (19, 228 B a vertex, about 66 B/tet on epcot); fields sized to a capacity (5 % unused on "
+              "(8 B); per vertex, 3-vectors of 12 B in f32: the rest shape, the two swapped states, where "
+              "the last step ended, the potential's, CG's, Newton's and BDF2's history (20, 240 B a vertex, about 70 B/tet "
+              "on epcot); fields sized to a capacity (5 % unused on "
               "epcot); on large meshes the two-level preconditioner's dense coarse inverse (up to 768 x 768: "
               "2.4 MB in f32, 48 B/tet on box50k). 200 B/tet would need Bm R^T recomputed in every CG "
               "product or the gather's buffer replaced by atomics: both slower, and atomics would add in a "
