@@ -140,14 +140,15 @@ def numbered_path(folder, stem: str, suffix: str) -> Path:
 @contextlib.contextmanager
 def signals_handled(signals, handler):
     """Inside the block, `handler(signum, frame)` handles each of `signals`; afterwards the
-    previous handlers are back. Off the main thread signals stay as they are."""
+    previous handlers, which the block receives as {signal: handler}, are back. Off the main
+    thread signals stay as they are (and the block receives {})."""
     try:
         previous = {s: signal.signal(s, handler) for s in signals}
     except ValueError:            # not the main thread
-        yield
+        yield {}
         return
     try:
-        yield
+        yield previous
     finally:
         for s, old in previous.items():
             signal.signal(s, old)
@@ -184,11 +185,7 @@ def interrupts_deferred():
     frame half sent to the encoder, or a container half closed, would leave a file no
     player can open."""
     arrived = []
-    try:
-        outer = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    except ValueError:            # not the main thread
-        outer = {}
-    with signals_handled([signal.SIGINT, signal.SIGTERM], lambda signum, frame: arrived.append(signum)):
+    with signals_handled([signal.SIGINT, signal.SIGTERM], lambda signum, frame: arrived.append(signum)) as outer:
         yield
     if arrived:
         # Hand the signal to the handler that was in place (interrupt_on_sigterm's counts it).
