@@ -160,10 +160,8 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
                 f"{FRAME_NAME.format(written - 1)}" if written else "no frame was complete")
         also = f" and {video} with {writer.frames} frames" if writer.active and writer.frames else ""
         older = older_frames(out, written)
-        earlier = ""
-        if older:
-            names = f"{older[0]} is" if len(older) == 1 else f"{older[0]} .. {older[-1]} are"
-            earlier = f"; {names} older, not from this export"
+        names = f"{older[0]} is" if len(older) == 1 else f"{older[0]} .. {older[-1]} are" if older else ""
+        earlier = f"; {names} older, not from this export" if older else ""
         print(f"interrupted at frame {written} of {args.frames}: {kept}{also}{earlier}", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(summary(timings, steps, view.renderer.name))
