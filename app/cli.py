@@ -132,7 +132,9 @@ def add_scene_options(p, scene_required=True):
                         "single: one linear solve per step, rotations frozen (cheaper, can gain energy)")
     p.add_argument("--integrator", choices=INTEGRATORS,
                    help="bdf2 (default): second order, keeps spin and waves (the first step and each one "
-                        "after an impulse is backward Euler); backward-euler: first order, damps fast motion")
+                        "after an impulse is backward Euler); trapezoidal: second order and damps nothing, "
+                        "more accurate, leans on the energy safeguard more; backward-euler: first order, damps "
+                        "fast motion")
     p.add_argument("--dt", type=POSITIVE, help="time step, s")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene value, e.g. --set body.soft.mesh.cells=[8,8,8]; "

@@ -22,7 +22,7 @@ PRECONDITIONERS = ("auto", "two-level", "jacobi")
 ROTATIONS = ("iterative", "svd")
 STEPS = ("newton", "single")
 # The integrator: what the step's incremental potential is built from (fem/implicit/potential.py)
-INTEGRATORS = ("backward-euler", "bdf2")
+INTEGRATORS = ("backward-euler", "bdf2", "trapezoidal")
 
 
 @dataclass
@@ -111,7 +111,8 @@ class Effects:
 class SolverSettings:
     dt: float = 0.02                    # s
     step: str = "newton"                # "newton": minimise the incremental potential | "single": one solve
-    integrator: str = "bdf2"            # "bdf2" (second order, two steps) | "backward-euler" (first order)
+    integrator: str = "bdf2"            # "bdf2" (second order, two steps) | "backward-euler" (first order) |
+                                        # "trapezoidal" (second order, undamped: Newmark's average acceleration)
     max_newton: int = 20                # Newton iterations per step at most
     newton_tolerance: float = 1e-5      # per body: stop (unconverged) when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration

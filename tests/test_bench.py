@@ -37,10 +37,11 @@ def rows_of(out):
 def test_bench_writes_all_three_files(bench_output):
     assert (bench_output / "accuracy_vs_time.png").read_bytes().startswith(b"\x89PNG")
     md = (bench_output / "results.md").read_text()
-    for words in ("A correct step costs", "Second order: BDF2 against backward Euler", "The default step",
+    for words in ("A correct step costs", "Second order against backward Euler", "trapezoidal with Newton steps", "The default step",
                   "Corotation costs", "BDF2 reference at 2 dt_ref", "Newton", "single", "Jacobi", "direct", "s/sim s",
                   "err 0.2 s", "halvings", "E-limited", "## Integrators and the reference's floor",
-                  "corotational BDF2 PCG 1e-4", "corotational backward Euler PCG 1e-4"):
+                  "corotational BDF2 PCG 1e-4", "corotational backward Euler PCG 1e-4",
+                  "corotational trapezoidal PCG 1e-4", "### Second order against backward Euler"):
         assert words in md
     assert json.loads((bench_output / "results.json").read_text())["headline"]
 
@@ -53,7 +54,7 @@ def test_bench_has_every_variant_once_with_an_error(bench_output):
     be, bdf2 = "backward-euler", "bdf2"
     for step in ("newton", "single"):
         for f in plan.DT_FACTORS:   # the dt axis, with either integrator
-            for integrator in (be, bdf2):
+            for integrator in (be, bdf2, "trapezoidal"):
                 assert ("corotational", "pcg", step, f, plan.BASELINE_TOLERANCE, None, None, integrator) in keys
         for tol in plan.PCG_TOLERANCES:
             assert ("corotational", "pcg", step, 1, tol, None, None, be) in keys
@@ -134,7 +135,8 @@ def test_bdf2_is_more_accurate_and_its_observed_order_is_two(bench_output):
         assert order["bdf2"][step] > order["backward-euler"][step] + 0.5
     md = (bench_output / "results.md").read_text()
     assert f"| {order['backward-euler']['newton']:.2f} | {order['backward-euler']['single']:.2f} " \
-           f"| {order['bdf2']['newton']:.2f} | {order['bdf2']['single']:.2f} |" in md
+           f"| {order['bdf2']['newton']:.2f} | {order['bdf2']['single']:.2f} " \
+           f"| {order['trapezoidal']['newton']:.2f} | {order['trapezoidal']['single']:.2f} |" in md
 
 
 def test_a_rows_time_per_simulated_second_is_its_ms_per_step_over_dt(bench_output):
@@ -188,15 +190,16 @@ def test_headline_numbers_say_what_second_order_and_the_default_step_do(bench_ou
     assert default["meets_goal"] == (row["errors"]["0.2"] + scene["reference_floor"] <= plan.ERROR_GOAL)
     integrators = numbers["integrators"]
     for step in ("newton", "single"):
-        bdf2 = conclusions.baseline(scene, "corotational", step, integrator="bdf2")
         be = conclusions.baseline(scene, "corotational", step)
-        ratios = integrators["bdf2_over_backward_euler"][step]
-        assert ratios["error"] == pytest.approx(bdf2["errors"]["0.2"] / be["errors"]["0.2"])
-        assert ratios["time"] == pytest.approx(bdf2["s_per_sim_s"] / be["s_per_sim_s"])
-        for integrator in ("backward-euler", "bdf2"):
+        for integrator in plan.SECOND_ORDER:
+            row = conclusions.baseline(scene, "corotational", step, integrator=integrator)
+            ratios = integrators[f"{integrator}_over_backward_euler"][step]
+            assert ratios["error"] == pytest.approx(row["errors"]["0.2"] / be["errors"]["0.2"])
+            assert ratios["time"] == pytest.approx(row["s_per_sim_s"] / be["s_per_sim_s"])
+        for integrator in plan.INTEGRATORS:
             assert integrators["observed_order"][integrator][step] == scene["observed_order"][integrator][step]
     frontier = [r for r in scene["variants"] if r["label"] in conclusions.frontier(scene)]
-    for integrator in ("backward-euler", "bdf2"):
+    for integrator in plan.INTEGRATORS:
         assert integrators["frontier_scenes"][integrator] == any(r["integrator"] == integrator for r in frontier)
         assert integrators["frontier_points"][integrator] == sum(r["integrator"] == integrator for r in frontier)
     assert f"on the frontier on {default['on_frontier']} of 1 scenes" in results["headline"][2]

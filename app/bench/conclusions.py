@@ -8,7 +8,7 @@ from collections import Counter
 from app.bench import direct
 from app.bench.plan import (BASELINE_TOLERANCE, DIRECT_TARGET, DIRECT_TOLERANCE, DT_FACTORS, ERROR_GOAL, INTEGRATORS,
                             MIN_REFERENCE_ORDER, PCG_TOLERANCES, REFERENCE_ORDER, REFERENCE_REFINEMENT,
-                            REFERENCE_SETTINGS, integrator_of, sci)
+                            REFERENCE_SETTINGS, SECOND_ORDER, integrator_of, sci)
 from fem.scene import SolverSettings
 
 ORDER_MARGIN = 10    # the observed order leaves out errors under this many times the reference's floor
@@ -33,9 +33,11 @@ def baseline(scene, method, step, solver="pcg", integrator="backward-euler"):
 
 
 def dt_axis(scene, step, integrator, method="corotational"):
-    """The rows of the dt axis (PCG at the default tolerance), largest dt first."""
-    return [find(scene, method=method, solver="pcg", step=step, integrator=integrator, dt_factor=f,
+    """The rows of the dt axis (PCG at the default tolerance), largest dt first (none from results that
+    predate the integrator)."""
+    rows = [find(scene, method=method, solver="pcg", step=step, integrator=integrator, dt_factor=f,
                  tolerance=BASELINE_TOLERANCE) for f in DT_FACTORS]
+    return [r for r in rows if r is not None]
 
 
 def reference_order(difference, twins):
@@ -229,34 +231,38 @@ def headline(scenes):
 
 
 def second_order(scenes, at_dt):
-    """What BDF2 buys and costs against backward Euler: a sentence, and its numbers."""
+    """What each second-order integrator buys and costs against backward Euler: a sentence, and its numbers."""
     n = len(scenes)
     ratios = {}
-    for step in ("newton", "single"):
-        pairs = [(baseline(s, "corotational", step, integrator="bdf2"), baseline(s, "corotational", step))
-                 for s in scenes]
-        error, _ = median_ratio((final_error(a), final_error(b)) for a, b in pairs)
-        time, _ = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in pairs)
-        ratios[step] = {"error": error, "time": time}
-    newton, single = ratios["newton"], ratios["single"]
+    for integrator in SECOND_ORDER:
+        for step in ("newton", "single"):
+            pairs = [(baseline(s, "corotational", step, integrator=integrator), baseline(s, "corotational", step))
+                     for s in scenes]
+            pairs = [(a, b) for a, b in pairs if a is not None]
+            error, _ = median_ratio((final_error(a), final_error(b)) for a, b in pairs)
+            time, _ = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in pairs)
+            ratios.setdefault(integrator, {})[step] = {"error": error, "time": time}
     orders = {integrator: {step: median_or_none(observed_order(s, step, integrator) for s in scenes)
                            for step in ("newton", "single")} for integrator in INTEGRATORS}
     frontiers = [[integrator_of(r) for r in frontier_rows(s)] for s in scenes]
     on_frontier = {integrator: sum(integrator in f for f in frontiers) for integrator in INTEGRATORS}
     points = {integrator: sum(f.count(integrator) for f in frontiers) for integrator in INTEGRATORS}
     medians = " (medians)" if n > 1 else ""
-    sentence = (f"Second order: BDF2 against backward Euler (corotational, PCG {sci(BASELINE_TOLERANCE)}, {at_dt}): "
-                f"with Newton steps it leaves {fmt(newton['error'], '.2g')} times the error in "
-                f"{fmt(newton['time'], '.2f')} times the wall time per simulated second, with one-solve steps "
-                f"{fmt(single['error'], '.2g')} times in {fmt(single['time'], '.2f')} times{medians}. Observed order, "
-                "the slope of log error against log dt over the dt axis, Newton and one-solve steps: "
+    against = "; ".join(
+        f"{INTEGRATORS[i]} with Newton steps leaves {fmt(r['newton']['error'], '.2g')} times the error in "
+        f"{fmt(r['newton']['time'], '.2f')} times the wall time per simulated second, with one-solve steps "
+        f"{fmt(r['single']['error'], '.2g')} times in {fmt(r['single']['time'], '.2f')} times"
+        for i, r in ratios.items())
+    sentence = (f"Second order against backward Euler (corotational, PCG {sci(BASELINE_TOLERANCE)}, {at_dt}): "
+                f"{against}{medians}. Observed order, the slope of log error against log dt over the dt axis, "
+                "Newton and one-solve steps: "
                 + ", ".join(f"{INTEGRATORS[i]} {fmt(o['newton'], '.2f')} and {fmt(o['single'], '.2f')}"
                             for i, o in orders.items())
                 + f"{medians}. On the accuracy/time frontier: "
                 + ", ".join(f"{INTEGRATORS[i]} on {k} of {n} scenes ({points[i]} of the {sum(points.values())} "
                             "points)" for i, k in on_frontier.items()) + ".")
-    return sentence, {"bdf2_over_backward_euler": ratios, "observed_order": orders, "frontier_scenes": on_frontier,
-                      "frontier_points": points}
+    numbers = {f"{i}_over_backward_euler": r for i, r in ratios.items()}
+    return sentence, {**numbers, "observed_order": orders, "frontier_scenes": on_frontier, "frontier_points": points}
 
 
 def default_step_numbers(scenes, at_dt):

@@ -3,7 +3,7 @@
 A free 2 x 0.5 x 0.5 m bar (E 2 kPa: soft enough that dt 0.02 s resolves its fastest mode)
 spins and twists for 0.4 s; each integrator runs at DTS and at REFERENCE_DT, and its error at
 a dt is the largest distance of a vertex from its own reference run. The slope of log error
-against log dt is the observed order: 1 for backward Euler, 2 for BDF2
+against log dt is the observed order: 1 for backward Euler, 2 for BDF2 and the trapezoidal rule
 (`main.py figures --only integrator_order`; docs/experiments.md, experiment 9).
 """
 
@@ -18,7 +18,8 @@ from fem.scene import Body, Material, Scene, SolverSettings
 DTS = (0.02, 0.01, 0.005)       # s
 REFERENCE_DT = 0.00125          # s: the same integrator, 16 times finer than the coarsest
 SECONDS = 0.4
-INTEGRATORS = {"backward-euler": "backward Euler", "bdf2": "BDF2"}
+INTEGRATORS = {"backward-euler": "backward Euler", "bdf2": "BDF2", "trapezoidal": "trapezoidal"}
+GUIDES = (("backward-euler", 1), ("bdf2", 2))   # the slopes drawn, each through one integrator's coarsest point
 
 
 def twisting_bar(dt, integrator, step="newton"):
@@ -56,12 +57,12 @@ def order_figure(size, dpi):
 
     numbers = observed_order()
     fig, ax = plt.subplots(figsize=size)
-    for (integrator, label), colour in zip(INTEGRATORS.items(), ("C3", "C0")):
+    for (integrator, label), colour in zip(INTEGRATORS.items(), ("C3", "C0", "C2")):
         run = numbers[integrator]
         slopes = ", ".join(f"{s:.2f}" for s in run["slopes"])
         ax.loglog(run["dt"], run["error"], "-o", color=colour, label=f"{label}: slopes {slopes}")
         for order, style in ((1, ":"), (2, "--")):
-            if (order == 1) == (integrator == "backward-euler"):   # a guide through its coarsest point
+            if (integrator, order) in GUIDES:                       # a guide through its coarsest point
                 guide = [run["error"][0] * (dt / DTS[0]) ** order for dt in DTS]
                 ax.loglog(DTS, guide, style, color="grey", lw=1, label=f"slope {order}")
     ax.set_xlabel("time step dt (s)")

@@ -6,7 +6,8 @@ import numpy as np
 
 import scenes
 from app.bench import direct
-from app.bench.order import INTEGRATORS   # {"backward-euler": "backward Euler", "bdf2": "BDF2"}: the tables' names
+from app.bench.order import INTEGRATORS   # {"backward-euler": "backward Euler", "bdf2": "BDF2", ...}: the tables' names
+SECOND_ORDER = ("bdf2", "trapezoidal")    # each compared with backward Euler
 from assets.generators import box
 from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings, place_mesh
 
@@ -107,7 +108,8 @@ def direct_role(backend):
 
 def variants():
     """Every variant but the references, in the order of the tables: backward Euler over every axis,
-    then BDF2 over the dt axis and BDF2_TOLERANCES (its other solvers would repeat backward Euler's)."""
+    then BDF2 over the dt axis and BDF2_TOLERANCES (its other solvers would repeat backward Euler's), then
+    the trapezoidal rule's corotational steps over the dt axis."""
     out = []
     for method, steps in STEPS.items():
         for step in steps:
@@ -120,6 +122,8 @@ def variants():
                 for f in DT_FACTORS]
         if method == "corotational":
             out += [Variant(method, "pcg", step, 1, tol, integrator="bdf2") for step in steps for tol in BDF2_TOLERANCES]
+    out += [Variant("corotational", "pcg", step, f, BASELINE_TOLERANCE, integrator="trapezoidal")
+            for step in STEPS["corotational"] for f in DT_FACTORS]
     return out
 
 

@@ -10,7 +10,9 @@ COLOURS = {   # (method, step, integrator)
     ("corotational", "newton", "backward-euler"): "tab:blue", ("corotational", "newton", "bdf2"): "tab:cyan",
     ("corotational", "single", "backward-euler"): "tab:purple", ("corotational", "single", "bdf2"): "tab:pink",
     ("linear", "newton", "backward-euler"): "tab:orange", ("linear", "newton", "bdf2"): "tab:brown",
-    ("linear", "single", "backward-euler"): "tab:orange"}
+    ("linear", "single", "backward-euler"): "tab:orange",
+    ("corotational", "newton", "trapezoidal"): "tab:green", ("corotational", "single", "trapezoidal"): "tab:olive"}
+MARKERS = {"backward-euler": "o-", "bdf2": "v-", "trapezoidal": "P-"}   # the dt axis of each integrator
 LEGEND_INCHES = 1.2   # below the plots
 
 
@@ -24,7 +26,7 @@ def series(scene):
             return
         integrator = integrator_of(row)
         kind = "linear" if row["method"] == "linear" else f"corotational {step_name(row)}"
-        kind += ", BDF2" if integrator == "bdf2" else ""          # unmarked: backward Euler
+        kind += {"bdf2": ", BDF2", "trapezoidal": ", trapezoidal"}.get(integrator, "")   # unmarked: backward Euler
         key = (f"{kind}, {what}", COLOURS[row["method"], row["step"], integrator], style)
         out.setdefault(key, []).append((row["s_per_sim_s"], max(error, 1e-12), label))
 
@@ -33,10 +35,10 @@ def series(scene):
     jacobi = "Jacobi x" + " / ".join(map(str, JACOBI_ITERATIONS))
     ends = (PCG_TOLERANCES[0], PCG_TOLERANCES[-1], JACOBI_ITERATIONS[0], JACOBI_ITERATIONS[-1])
     for r in scene["variants"]:   # only the ends of the tolerance and Jacobi axes are labelled: they crowd
-        bdf2 = integrator_of(r) == "bdf2"
+        integrator = integrator_of(r)
         if r["solver"] == "pcg" and r["tolerance"] == BASELINE_TOLERANCE:
-            add(r, dts, "v-" if bdf2 else "o-", f"{r['dt']:g} s")
-        if r["solver"] == "pcg" and r["dt_factor"] == 1 and not bdf2:
+            add(r, dts, MARKERS[integrator], f"{r['dt']:g} s")
+        if r["solver"] == "pcg" and r["dt_factor"] == 1 and integrator == "backward-euler":
             add(r, tolerances, "^--", sci(r["tolerance"]) if r["tolerance"] in ends else "")
         if r["solver"] == "jacobi":
             add(r, jacobi, "s:", f"J{r['iterations']}" if r["iterations"] in ends else "")

@@ -22,7 +22,8 @@ compared with a committed one number by number.
                           (written by `main.py bench --docs`)
     hard_case_energy      total energy of a near-incompressible spinning cube at dt 0.5 s: the
                           one-solve step gains energy, the Newton step never does
-    integrator_order      position error against dt of backward Euler and BDF2 (app.bench.order)
+    integrator_order      position error against dt of backward Euler, BDF2 and the trapezoidal
+                          rule (app.bench.order)
 
 Every run takes the scene's own time step and solver settings (the Newton step), on the CPU
 in f32 unless --arch or --precision say otherwise; pictures come from the software renderer,
@@ -114,7 +115,8 @@ def catalogue():
                lambda maker: epcot_still(maker, "volume")),
         Figure("hard_case_energy", f"the {HARD_CASE} cube at dt {HARD_CASE_DT:g} s: one-solve vs Newton step",
                hard_case_energy),
-        Figure("integrator_order", "error against dt, backward Euler (first order) against BDF2 (second)",
+        Figure("integrator_order", "error against dt, backward Euler (first order) against BDF2 and the "
+               "trapezoidal rule (second)",
                lambda maker: Drawn(*order.order_figure(PLOT_SIZE, PLOT_DPI))),
     ]
 

@@ -56,18 +56,24 @@ class Safeguards:
     @ti.kernel
     def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), x: ti.template(),
                    v: ti.template(), h: float, dt: float, momentum: ti.template(),
-                   energy: ti.template()) -> TWO_I32:
+                   energy: ti.template(), accel: ti.template(), keep: ti.template()) -> TWO_I32:
         """The step's last checks on its iterate x, v, in one launch: returns (vertices not
         finite, bodies energy-limited). momentum: `restore_momentum`; energy: the total
-        energy AFTER and `limit_energy` (x_n: the step's start). The caller discards a result
-        that is not finite, whatever these did with it."""
+        energy AFTER and `limit_energy` (x_n: the step's start). keep: accel <- the step's
+        acceleration (v - v^) / h, what the forces did, before the energy limit takes any away
+        (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller discards a
+        result that is not finite, whatever these did with it."""
         bad = self.check_finite(x, v)
         if ti.static(momentum):
             self.restore_momentum(v0, x0, x, v, h)
+        if ti.static(keep):
+            ti.loop_config(serialize=self.serial_vertices)
+            for i in range(self.model.vertex_count[None]):
+                accel[i] = (v[i] - v0[i]) / h
         limited = 0
         if ti.static(energy):
             self.total_energy(x, v, AFTER, 1)
-            limited = self.limit_energy(x_n, x, v, dt)
+            limited = self.limit_energy(x_n, x, v, dt, accel, keep)
         return ti.Vector([bad, limited], ti.i32)
 
     @ti.func
@@ -152,12 +158,13 @@ class Safeguards:
             self.body_total_size[when, self.model.vertex_body[i]] += kinetic + ti.abs(potential)
 
     @ti.func
-    def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt):
+    def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt, accel: ti.template(),
+                     keep: ti.template()):
         """Scale v - v_cm of every body whose energy rose (v_cm = 0 for pinned bodies) so that
         its kinetic energy falls by the rise. Where the rise exceeds that kinetic energy (a body
         nearly at rest in a non-convex state), the body stays where it was (x0), moving on with
-        its centre's velocity when no external force could have raised it (else at rest).
-        Returns how many bodies were limited."""
+        its centre's velocity when no external force could have raised it (else at rest; keep:
+        its accel <- 0, the step's is not for x0). Returns how many bodies were limited."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_mass[b] = 0.0
@@ -197,6 +204,8 @@ class Safeguards:
                 if ti.static(not (self.has_gravity or self.effects.has_ground)):
                     c = ti.cast(self.centre_velocity(b), float) * self.model.free[i]
                 x[i], v[i] = x0[i] + dt * c, c
+                if ti.static(keep):
+                    accel[i] = ti.Vector.zero(float, 3)
             elif self.body_kinetic[b] < 1.0:
                 c = self.centre_velocity(b)
                 v[i] = ti.cast((c + self.body_kinetic[b] * (ti.cast(v[i], ti.f64) - c)) * self.model.free[i], float)

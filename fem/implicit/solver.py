@@ -134,10 +134,10 @@ class ImplicitSolver:
         self.turn_known = not ended_here                                # the turn of this step, recorded
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
-        self.history.apply(target, settings.integrator, p, state_in.x, state_in.v)   # x^, v^ (backward Euler: x_n, v_n)
+        self.history.apply(target, settings.integrator, p, state_in.x, state_in.v, h)   # x^, v^ (backward Euler: x_n, v_n)
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
-        self.newton.first_iterate(p.x0, p.x, p.v, h, target.b != 0.0, state_in.v, scale)
-        if target.b != 0.0:
+        self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale)
+        if target.from_history:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
         if ground:
             self.effects.start_contacts(state_in.x, p.x, h, dt)         # friction's normal forces at x_n
@@ -156,7 +156,10 @@ class ImplicitSolver:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
         # the safeguards: finite, momentum (where no ground pushes), energy
-        bad, limited = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground, newton)
+        trapezoidal = settings.integrator == "trapezoidal"          # it keeps the step's acceleration
+        accel = self.history.acceleration() if trapezoidal else p.v0
+        bad, limited = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground, newton,
+                                                  accel, trapezoidal)
         finite = bad == 0 and math.isfinite(solved.rho)
         limited = int(limited) if finite else 0
         # the rotations and elastic energies the next step can reuse: those of its x_n, unless

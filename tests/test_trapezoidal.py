@@ -1,0 +1,119 @@
+"""The trapezoidal rule (Newmark's average acceleration), `solver.integrator = "trapezoidal"`:
+its steps equal the textbook Newmark update solved by scipy, it damps nothing (a linear body's
+energy and a spinning body's angular momentum are kept), it keeps momentum exactly, it is second
+order, and anything that breaks its history restarts it with backward Euler."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+from conftest import box_mesh, make_scene
+from test_elastic import assembled_matrix
+from test_step_promises import angular_momentum, spinning_box
+
+import fem
+from app.bench.order import observed_order
+from fem.scene import Effects, SolverSettings
+
+
+def linear_box(effects, dt):
+    scene = make_scene(box_mesh(3), "linear", E=5e4, nu=0.4, effects=effects,
+                       solver=SolverSettings(dt=dt, integrator="trapezoidal", tolerance=1e-12, max_iterations=2000))
+    sim = fem.Simulation(scene)
+    sim.settings.sleep = False
+    rng = np.random.default_rng(5)
+    X = sim.positions()
+    sim.set_state(X + 0.05 * rng.standard_normal(X.shape), rng.standard_normal(X.shape))
+    return sim, X
+
+
+def newmark(M, D, K, f, x, v, X, dt, steps):
+    """The textbook average-acceleration Newmark method (beta 1/4, gamma 1/2) on M a + D v + K (x - X) = f,
+    its first step backward Euler's, as the engine's: positions after each step."""
+    solve = lambda A, b: spla.spsolve(A.tocsc(), b)   # noqa: E731
+    v1 = solve(M + dt * D + dt**2 * K, M @ v - dt * K @ (x - X) + dt * f)
+    x, v = x + dt * v1, v1
+    a = solve(M, f - D @ v - K @ (x - X))                       # the equation of motion at the first step's end
+    out = [x]
+    A = M + dt / 2 * D + dt**2 / 4 * K
+    for _ in range(steps - 1):
+        a_new = solve(A, f - D @ (v + dt / 2 * a) - K @ (x + dt * v + dt**2 / 4 * a - X))
+        x = x + dt * v + dt**2 / 4 * (a + a_new)
+        v = v + dt / 2 * (a + a_new)
+        a = a_new
+        out.append(x)
+    return out
+
+
+def test_its_steps_are_the_textbook_newmark_update(f64):
+    """A linear body with gravity and Rayleigh damping, from a random state: 12 steps equal
+    scipy's solve of the Newmark update on an independently assembled K."""
+    dt, alpha, beta, g = 0.05, 0.3, 0.02, np.array([0.0, -9.81, 0.0])
+    sim, X = linear_box(Effects(gravity=tuple(g), alpha=alpha, beta=beta), dt)
+    M = assembled_matrix(sim, 1.0, 0.0, X)
+    K = assembled_matrix(sim, 0.0, 1.0, X)
+    expected = newmark(M, alpha * M + beta * K, K, M @ np.tile(g, len(X)), sim.positions().ravel(),
+                       sim.velocities().ravel(), X.ravel(), dt, 12)
+    for k, x in enumerate(expected):
+        info = sim.step()
+        assert info["integrator"] == ("backward-euler" if k == 0 else "trapezoidal"), info
+        np.testing.assert_allclose(sim.positions().ravel(), x, rtol=0, atol=1e-9)
+
+
+def test_without_damping_a_linear_body_keeps_its_energy_where_bdf2_loses_some(f64):
+    """Kinetic + elastic energy of a free, undamped linear body over 50 steps: the trapezoidal rule
+    conserves it for a quadratic energy (after its first, backward-Euler step)."""
+    kept = {}
+    for integrator in ("trapezoidal", "bdf2"):
+        sim, _ = linear_box(Effects(), 0.05)
+        sim.settings.integrator = integrator
+        sim.step()
+        start = sim.stats()["total_energy"]
+        for _ in range(50):
+            sim.step()
+        kept[integrator] = sim.stats()["total_energy"] / start
+    assert abs(kept["trapezoidal"] - 1) <= 1e-9, kept
+    assert kept["bdf2"] < 0.99, kept
+
+
+def test_momentum_follows_gravity_exactly(f64):
+    """An inexact solve (PCG 1e-3) of a spinning corotational body falling freely: its momentum
+    after each step is exactly M (v_0 + g t), as with the other integrators."""
+    scene = make_scene(box_mesh(3), E=2e5, effects=Effects(gravity=(0.0, -9.81, 0.0)),
+                       solver=SolverSettings(dt=0.02, integrator="trapezoidal", tolerance=1e-3))
+    sim = fem.Simulation(scene)
+    sim.settings.sleep = False
+    m = sim.model.mass.to_numpy()[:sim.model.n_vertices].astype(np.float64)
+    x = sim.positions()
+    sim.set_state(x, np.cross([0.0, 3.0, 1.0], x - x.mean(0)) + [0.5, 0.0, 0.0])
+    p0 = (m[:, None] * sim.velocities()).sum(0)
+    for k in range(1, 21):
+        sim.step()
+        p = (m[:, None] * sim.velocities()).sum(0)
+        np.testing.assert_allclose(p, p0 + m.sum() * np.array([0.0, -9.81, 0.0]) * 0.02 * k, rtol=0, atol=1e-9)
+
+
+def test_a_free_spinning_body_keeps_its_angular_momentum(f64):
+    """The spinning box of test_step_promises at dt 0.02 s for 2 s, without damping."""
+    sim = spinning_box(integrator="trapezoidal")
+    start = angular_momentum(sim)[1]
+    for _ in range(100):
+        sim.step()
+    assert angular_momentum(sim)[1] / start >= 0.999
+
+
+def test_an_impulse_or_a_new_dt_restarts_it_with_backward_euler(f64):
+    sim = spinning_box(integrator="trapezoidal")
+    assert [sim.step()["integrator"] for _ in range(3)] == ["backward-euler", "trapezoidal", "trapezoidal"]
+    sim.apply_impulse([0], [0.0, 1.0, 0.0])
+    assert [sim.step()["integrator"] for _ in range(2)] == ["backward-euler", "trapezoidal"]
+    sim.settings.dt = 0.01
+    assert [sim.step()["integrator"] for _ in range(2)] == ["backward-euler", "trapezoidal"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("step", ["newton", "single"])
+def test_it_is_second_order(f64, step):
+    """The spinning, twisting bar of app/bench/order.py at dt 0.02, 0.01 and 0.005 s, against
+    itself at dt 0.00125 s."""
+    measured = observed_order(step=step, integrators=("trapezoidal",))["trapezoidal"]
+    assert min(measured["slopes"]) >= 1.8, measured
