@@ -71,3 +71,54 @@ def test_a_state_changed_behind_the_steps_back_is_measured_again(f64):
     info = sim.step()
     assert info["energy_limited"] == 0
     assert sim.stats()["kinetic_energy"] > 0.1 * stretched
+
+
+def limited(rise_share):
+    """A free box spinning at 3 rad/s about y and vibrating (x, v at the step's end), its total
+    energy BEFORE the step set below its energy AFTER by rise_share of its vibration's kinetic
+    energy; the energy limit alone (fem/implicit/safeguards.py) then acts. Returns (sim, x, v, the
+    vibration's velocities, the energy BEFORE, the velocities after the limit)."""
+    sim = fem.Simulation(make_scene(box_mesh(3), "corotational", E=1e4, nu=0.3))
+    n, cap = sim.model.n_vertices, sim.model.capacity.vertices
+    m = sim.model.mass_np[:, None]
+    rng = np.random.default_rng(7)
+    x = sim.positions()
+    r = x - (m * x).sum(0) / m.sum()
+    spin = np.cross([0.0, 3.0, 0.0], r)
+    wobble = 0.2 * rng.standard_normal(x.shape)
+    wobble -= (m * wobble).sum(0) / m.sum()                       # no momentum in it
+    inertia = (m[:, :, None] * ((r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])).sum(0)
+    wobble -= np.cross(np.linalg.solve(inertia, (m * np.cross(r, wobble)).sum(0)), r)   # nor angular momentum
+    v = spin + wobble + [0.5, 0.0, 0.0]
+    sim.set_state(x, v)
+    after = sim.stats()["total_energy"]
+    before = after - rise_share * 0.5 * (m * wobble ** 2).sum()
+    p, guard = sim.solver.potential, sim.solver.safeguards
+    pad = lambda a: np.vstack([a, np.zeros((cap - n, 3))])        # noqa: E731
+    p.x.from_numpy(pad(x))
+    p.v.from_numpy(pad(v))
+    guard.body_total[0, 0] = before
+    guard.after_step(p.v0, p.x0, p.x, p.x, p.v, 0.02, 0.02, False, True, p.v0, False)
+    return sim, x, v, wobble, before, p.v.to_numpy()[:n].astype(np.float64)
+
+
+def test_the_energy_limit_takes_a_rise_out_of_the_deformation_and_keeps_the_spin(f64):
+    sim, x, v, wobble, before, limited_v = limited(0.5)
+    m = sim.model.mass_np[:, None]
+    sim.set_state(x, limited_v)
+    assert sim.stats()["total_energy"] == pytest.approx(before, rel=1e-12)
+    np.testing.assert_allclose((m * limited_v).sum(0), (m * v).sum(0), atol=1e-12)
+    np.testing.assert_allclose((m * np.cross(x, limited_v)).sum(0), (m * np.cross(x, v)).sum(0), atol=1e-11)
+    np.testing.assert_allclose(limited_v, v - (1 - np.sqrt(0.5)) * wobble, atol=1e-12)   # the wobble scaled
+
+
+def test_a_rise_beyond_the_deformation_slows_the_motion_about_the_centre(f64):
+    sim, x, v, wobble, before, limited_v = limited(1.5)
+    m = sim.model.mass_np[:, None]
+    sim.set_state(x, limited_v)
+    assert sim.stats()["total_energy"] == pytest.approx(before, rel=1e-12)
+    np.testing.assert_allclose((m * limited_v).sum(0), (m * v).sum(0), atol=1e-12)
+    c = (m * v).sum(0) / m.sum()
+    scale = (limited_v - c) / (v - c)
+    np.testing.assert_allclose(scale, scale[0, 0], rtol=1e-9)   # every relative velocity by one factor
+    assert 0 < scale[0, 0] < 1

@@ -98,7 +98,7 @@ def test_a_free_spinning_body_keeps_its_angular_momentum(f64):
     start = angular_momentum(sim)[1]
     for _ in range(100):
         sim.step()
-    assert angular_momentum(sim)[1] / start >= 0.999
+    assert angular_momentum(sim)[1] / start >= 0.995        # 0.998 (BDF2: 0.993, backward Euler: 0.77)
 
 
 def test_an_impulse_or_a_new_dt_restarts_it_with_backward_euler(f64):

@@ -8,9 +8,13 @@
   convex: a compressed tet's twist curvature is negative) can end a step with more energy
   than it began, even when solved exactly: thin, bending or buckling bodies do. The promise
   that total energy never rises is kept by a last safeguard: a body whose kinetic + elastic
-  + gravitational energy rose has its velocities relative to its centre of mass scaled down
-  by just enough (positions and linear momentum untouched); a body whose rise is more than
-  that motion holds (nearly at rest) keeps its old positions, at rest. StepInfo counts both.
+  + gravitational energy rose has the velocities of its deformation (what is left of v once
+  its centre's velocity and its rigid spin omega x r are taken out) scaled down by just
+  enough, so that positions, momentum and angular momentum are untouched: a spinning body
+  keeps its spin. Where its deformation holds less kinetic energy than the rise, its
+  velocities relative to its centre of mass are scaled instead; a body whose rise is more
+  than that motion holds (nearly at rest) keeps its old positions, at rest. A pinned body
+  has no free centre or spin: its velocities are scaled. StepInfo counts all of these.
 
 Fields (bodies of the capacity; energies summed in float64):
     body_total (2, bodies)       each body's total energy [BEFORE, AFTER] the step, J
@@ -18,7 +22,12 @@ Fields (bodies of the capacity; energies summed in float64):
     body_mass (bodies,)          kg (free vertices only, for the energy limit)
     body_momentum_vector (bodies, 3)   kg m/s
     body_kinetic (bodies,)       J: kinetic energy relative to the centre of mass, then the
-                                 factor its relative velocities are scaled by
+                                 factor its spin is scaled by (-1: the body goes back to x_n)
+    body_deformation (bodies,)   J: the kinetic energy of its deformation, then the factor
+                                 the deformation's velocities are scaled by
+    body_centre (bodies, 3)      m: its centre of mass
+    body_spin (bodies, 3)        its angular momentum about the centre (kg m^2/s), then omega (1/s)
+    body_inertia (bodies, 3x3)   its inertia tensor about the centre, kg m^2
     body_pinned (bodies,)        1: the body has pinned vertices
     body_elastic (bodies,)       its elastic energy when last summed, J: a step that starts where
                                  the last one ended (the same positions and rotations) reuses it
@@ -50,6 +59,10 @@ class Safeguards:
         self.body_mass = ti.field(ti.f64, nb)
         self.body_momentum_vector = ti.Vector.field(3, ti.f64, nb)
         self.body_kinetic = ti.field(ti.f64, nb)
+        self.body_deformation = ti.field(ti.f64, nb)
+        self.body_centre = ti.Vector.field(3, ti.f64, nb)
+        self.body_spin = ti.Vector.field(3, ti.f64, nb)
+        self.body_inertia = ti.Matrix.field(3, 3, ti.f64, nb)
         self.body_pinned = ti.field(ti.i32, nb)
         self.body_elastic = ti.field(ti.f64, nb)
 
@@ -160,42 +173,27 @@ class Safeguards:
     @ti.func
     def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt, accel: ti.template(),
                      keep: ti.template()):
-        """Scale v - v_cm of every body whose energy rose (v_cm = 0 for pinned bodies) so that
-        its kinetic energy falls by the rise. Where the rise exceeds that kinetic energy (a body
-        nearly at rest in a non-convex state), the body stays where it was (x0), moving on with
-        its centre's velocity when no external force could have raised it (else at rest; keep:
-        its accel <- 0, the step's is not for x0). Returns how many bodies were limited."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_mass[b] = 0.0
-            self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
-            self.body_kinetic[b] = 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
-            b = self.model.vertex_body[i]
-            self.body_mass[b] += m
-            self.body_momentum_vector[b] += m * ti.cast(v[i], ti.f64)
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):     # kinetic energy of the motion relative to the centre of mass
-            b = self.model.vertex_body[i]
-            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
-            u = ti.cast(v[i], ti.f64) - self.centre_velocity(b)
-            self.body_kinetic[b] += 0.5 * m * u.norm_sqr()
+        """Take each rise out of the body's deformation, or else its motion about its centre
+        (module docstring; x0: the step's start). keep: a body sent back to x0 gets accel <- 0,
+        the step's is not for x0. Returns how many bodies were limited."""
+        self.rigid_motion(x, v)
         limited = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             rise = self.body_total[AFTER, b] - self.body_total[BEFORE, b]
             noise = ti.static(ROUNDOFF * epsilon()) * ti.max(self.body_total_size[BEFORE, b],
                                                                self.body_total_size[AFTER, b])
-            scale = ti.cast(1.0, ti.f64)
+            spin, deformation = ti.cast(1.0, ti.f64), ti.cast(1.0, ti.f64)
             if rise > noise:                     # a rise within round-off is no rise
                 limited += 1
-                if self.body_kinetic[b] > rise:
-                    scale = ti.sqrt(1.0 - rise / self.body_kinetic[b])
+                if self.body_deformation[b] > rise:
+                    deformation = ti.sqrt(1.0 - rise / self.body_deformation[b])
+                elif self.body_kinetic[b] > rise:
+                    spin = ti.sqrt(1.0 - rise / self.body_kinetic[b])
+                    deformation = spin
                 else:
-                    scale = -1.0                 # cannot be absorbed: keep x_n, at rest
-            self.body_kinetic[b] = scale         # reused: the factor per body
+                    spin = -1.0                  # cannot be absorbed: keep x_n, at rest
+            self.body_kinetic[b], self.body_deformation[b] = spin, deformation   # reused: the factors
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             b = self.model.vertex_body[i]
@@ -206,10 +204,62 @@ class Safeguards:
                 x[i], v[i] = x0[i] + dt * c, c
                 if ti.static(keep):
                     accel[i] = ti.Vector.zero(float, 3)
-            elif self.body_kinetic[b] < 1.0:
+            elif self.body_deformation[b] < 1.0:
                 c = self.centre_velocity(b)
-                v[i] = ti.cast((c + self.body_kinetic[b] * (ti.cast(v[i], ti.f64) - c)) * self.model.free[i], float)
+                turn = self.body_spin[b].cross(ti.cast(x[i], ti.f64) - self.body_centre[b])
+                w = ti.cast(v[i], ti.f64) - c - turn
+                u = c + self.body_kinetic[b] * turn + self.body_deformation[b] * w
+                v[i] = ti.cast(u * self.model.free[i], float)
         return limited
+
+    @ti.func
+    def rigid_motion(self, x: ti.template(), v: ti.template()):
+        """Per body: its centre's velocity (pinned: 0), its spin omega = I^-1 L (pinned: 0), the
+        kinetic energy of its motion about the centre (body_kinetic) and of its deformation,
+        v - v_cm - omega x r (body_deformation); free vertices only."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_mass[b] = 0.0
+            self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
+            self.body_centre[b] = ti.Vector.zero(ti.f64, 3)
+            self.body_spin[b] = ti.Vector.zero(ti.f64, 3)
+            self.body_inertia[b] = ti.Matrix.zero(ti.f64, 3, 3)
+            self.body_kinetic[b] = 0.0
+            self.body_deformation[b] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+            b = self.model.vertex_body[i]
+            self.body_mass[b] += m
+            self.body_momentum_vector[b] += m * ti.cast(v[i], ti.f64)
+            self.body_centre[b] += m * ti.cast(x[i], ti.f64)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if self.body_mass[b] > 0:
+                self.body_centre[b] /= self.body_mass[b]
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):     # the motion about the centre: L, I, its energy
+            b = self.model.vertex_body[i]
+            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+            r = ti.cast(x[i], ti.f64) - self.body_centre[b]
+            u = ti.cast(v[i], ti.f64) - self.centre_velocity(b)
+            self.body_spin[b] += m * r.cross(u)
+            self.body_inertia[b] += m * (r.dot(r) * ti.Matrix.identity(ti.f64, 3) - r.outer_product(r))
+            self.body_kinetic[b] += 0.5 * m * u.norm_sqr()
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            I = self.body_inertia[b]
+            omega = ti.Vector.zero(ti.f64, 3)
+            if self.body_pinned[b] == 0 and I.determinant() > 1e-12 * I.trace() ** 3:
+                omega = I.inverse() @ self.body_spin[b]
+            self.body_spin[b] = omega
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            b = self.model.vertex_body[i]
+            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+            r = ti.cast(x[i], ti.f64) - self.body_centre[b]
+            w = ti.cast(v[i], ti.f64) - self.centre_velocity(b) - self.body_spin[b].cross(r)
+            self.body_deformation[b] += 0.5 * m * w.norm_sqr()
 
     @ti.func
     def centre_velocity(self, b):
