@@ -27,7 +27,7 @@ from app import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, program_name
 from app.display import display_problem
 from app.files import check_output, interrupt_on_sigterm
 from fem.errors import FemError, SizeLimitError
-from fem.scene import INTEGRATORS
+from fem.scene import INTEGRATOR_CHOICES
 
 DEFAULT_SCENE = "epcot"
 DEFAULT_FRAMES = 150            # of the export a bare `main.py` makes without a display
@@ -130,11 +130,11 @@ def add_scene_options(p, scene_required=True):
     p.add_argument("--step", choices=["newton", "single"],
                    help="newton: minimise the incremental potential, energy never rises (default); "
                         "single: one linear solve per step, rotations frozen (cheaper, can gain energy)")
-    p.add_argument("--integrator", choices=INTEGRATORS,
-                   help="bdf2 (default): second order, keeps spin and waves (the first step and each one "
-                        "after an impulse is backward Euler); trapezoidal: second order and damps nothing, "
-                        "more accurate, leans on the energy safeguard more; backward-euler: first order, damps "
-                        "fast motion")
+    p.add_argument("--integrator", choices=INTEGRATOR_CHOICES,
+                   help="auto (default): trapezoidal, or bdf2 in a scene with a ground; trapezoidal: second "
+                        "order, damps nothing, the most accurate; bdf2: second order, damps the fastest modes "
+                        "(the ground's stiff contact); backward-euler: first order, damps fast motion (the "
+                        "first step of the others, and each one after an impulse, is backward Euler's)")
     p.add_argument("--dt", type=POSITIVE, help="time step, s")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene value, e.g. --set body.soft.mesh.cells=[8,8,8]; "

@@ -21,8 +21,10 @@ SOLVERS = ("pcg", "jacobi")
 PRECONDITIONERS = ("auto", "two-level", "jacobi")
 ROTATIONS = ("iterative", "svd")
 STEPS = ("newton", "single")
-# The integrator: what the step's incremental potential is built from (fem/implicit/potential.py)
+# The integrator: what the step's incremental potential is built from (fem/implicit/potential.py);
+# "auto" picks one per scene (fem/implicit/integrators.py: chosen)
 INTEGRATORS = ("backward-euler", "bdf2", "trapezoidal")
+INTEGRATOR_CHOICES = ("auto", *INTEGRATORS)
 
 
 @dataclass
@@ -111,8 +113,9 @@ class Effects:
 class SolverSettings:
     dt: float = 0.02                    # s
     step: str = "newton"                # "newton": minimise the incremental potential | "single": one solve
-    integrator: str = "bdf2"            # "bdf2" (second order, two steps) | "backward-euler" (first order) |
-                                        # "trapezoidal" (second order, undamped: Newmark's average acceleration)
+    integrator: str = "auto"            # "trapezoidal" (second order, undamped: Newmark's average acceleration) |
+                                        # "bdf2" (second order, damps fast modes) | "backward-euler" (first
+                                        # order) | "auto": the trapezoidal rule, BDF2 where there is a ground
     max_newton: int = 20                # Newton iterations per step at most
     newton_tolerance: float = 1e-5      # per body: stop (unconverged) when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration
@@ -130,8 +133,8 @@ class SolverSettings:
         limits.check_range(self.dt, *limits.DT_RANGE, f"{where}: dt", " s")
         if self.step not in STEPS:
             raise FemError(f"{where}: step must be one of {STEPS}, got {self.step!r}")
-        if self.integrator not in INTEGRATORS:
-            raise FemError(f"{where}: integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
+        if self.integrator not in INTEGRATOR_CHOICES:
+            raise FemError(f"{where}: integrator must be one of {INTEGRATOR_CHOICES}, got {self.integrator!r}")
         if not self.newton_tolerance > 0:
             raise FemError(f"{where}: newton_tolerance must be > 0, got {self.newton_tolerance}")
         if not self.max_newton >= 1:

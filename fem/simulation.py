@@ -44,8 +44,9 @@ class Simulation:
     """Steps one scene with an implicit integrator; see fem.implicit for the maths.
 
     method: None keeps each body's own method, "linear" / "corotational" overrides all.
-    solver ("pcg" | "jacobi"), step ("newton" | "single"), integrator ("backward-euler" |
-    "bdf2"), dt (s), tolerance, max_iterations: override the scene's solver settings where not None.
+    solver ("pcg" | "jacobi"), step ("newton" | "single"), integrator ("auto" | "trapezoidal" |
+    "bdf2" | "backward-euler"), dt (s), tolerance, max_iterations: override the scene's solver
+    settings where not None.
     """
 
     def __init__(self, scene, method=None, solver=None, dt=None, tolerance=None, max_iterations=None,

@@ -110,6 +110,16 @@ def test_an_impulse_or_a_new_dt_restarts_it_with_backward_euler(f64):
     assert [sim.step()["integrator"] for _ in range(2)] == ["backward-euler", "trapezoidal"]
 
 
+def test_a_live_switch_of_integrator_restarts_the_history(f64):
+    """BDF2's history is no trapezoidal one, nor the other way round: the first step after a switch
+    (the window's or a script's `settings.integrator`) is backward Euler's."""
+    sim = spinning_box(integrator="bdf2")
+    assert [sim.step()["integrator"] for _ in range(2)] == ["backward-euler", "bdf2"]
+    for integrator in ("trapezoidal", "bdf2", "trapezoidal"):
+        sim.settings.integrator = integrator
+        assert [sim.step()["integrator"] for _ in range(2)] == ["backward-euler", integrator]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("step", ["newton", "single"])
 def test_it_is_second_order(f64, step):
@@ -117,3 +127,14 @@ def test_it_is_second_order(f64, step):
     itself at dt 0.00125 s."""
     measured = observed_order(step=step, integrators=("trapezoidal",))["trapezoidal"]
     assert min(measured["slopes"]) >= 1.8, measured
+
+
+def test_auto_is_the_trapezoidal_rule_but_bdf2_on_the_ground(f64):
+    """The default integrator: the trapezoidal rule damps nothing, so a ground's stiff penalty would ring
+    (fem/implicit/integrators.py); a scene with a ground steps with BDF2."""
+    assert SolverSettings().integrator == "auto"
+    for ground, integrator in ((None, "trapezoidal"), (0.0, "bdf2")):
+        scene = make_scene(box_mesh(2), effects=Effects(gravity=(0.0, -9.81, 0.0), ground=ground),
+                           solver=SolverSettings(dt=0.02), position=(0.0, 0.5, 0.0))
+        sim = fem.Simulation(scene)
+        assert [sim.step()["integrator"] for _ in range(2)] == ["backward-euler", integrator]

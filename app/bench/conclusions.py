@@ -9,6 +9,7 @@ from app.bench import direct
 from app.bench.plan import (BASELINE_TOLERANCE, DIRECT_TARGET, DIRECT_TOLERANCE, DT_FACTORS, ERROR_GOAL, INTEGRATORS,
                             MIN_REFERENCE_ORDER, PCG_TOLERANCES, REFERENCE_ORDER, REFERENCE_REFINEMENT,
                             REFERENCE_SETTINGS, SECOND_ORDER, integrator_of, sci)
+from fem.implicit.integrators import chosen
 from fem.scene import SolverSettings
 
 ORDER_MARGIN = 10    # the observed order leaves out errors under this many times the reference's floor
@@ -108,10 +109,11 @@ def frontier(scene):
     return [r["label"] for r in frontier_rows(scene)]
 
 
-def default_step():
-    """(integrator, step, tolerance) of the engine's default settings, fem.scene.SolverSettings()."""
+def default_step(scene):
+    """(integrator, step, tolerance) of the engine's default settings, fem.scene.SolverSettings(), on
+    this scene ("auto" picks by whether it has a ground)."""
     settings = SolverSettings()
-    return settings.integrator, settings.step, settings.tolerance
+    return chosen(settings.integrator, scene.get("ground", False)), settings.step, settings.tolerance
 
 
 def direct_comparison(scene):
@@ -268,18 +270,23 @@ def second_order(scenes, at_dt):
 def default_step_numbers(scenes, at_dt):
     """The engine's default step (corotational, PCG at the default tolerance, the scene's dt): on how many
     scenes it is on the frontier and meets the goal, and its time against backward Euler's one-solve step."""
-    integrator, step, tolerance = default_step()
+    steps = [default_step(s) for s in scenes]
     rows = [find(s, method="corotational", solver="pcg", step=step, integrator=integrator, dt_factor=1,
-                 tolerance=tolerance) for s in scenes]
+                 tolerance=tolerance) for s, (integrator, step, tolerance) in zip(scenes, steps)]
     single = [baseline(s, "corotational", "single") for s in scenes]
     time, times = median_ratio((a["s_per_sim_s"], b["s_per_sim_s"]) for a, b in zip(rows, single))
-    numbers = {"integrator": integrator, "step": step, "scenes": len(scenes),
-               "on_frontier": sum(r["label"] in frontier(s) for r, s in zip(rows, scenes)),
+    setting, step, tolerance = SolverSettings().integrator, steps[0][1], steps[0][2]
+    numbers = {"integrator": setting, "integrators": [integrator for integrator, _, _ in steps], "step": step,
+               "scenes": len(scenes), "on_frontier": sum(r["label"] in frontier(s) for r, s in zip(rows, scenes)),
                "meets_goal": sum(meets_goal(r, s) for r, s in zip(rows, scenes)), "time_over_single": time}
     n = len(scenes)
     over = f" (median; {spread(times)})" if n > 1 else ""
     kind = {"newton": "Newton", "single": "one-solve"}[step]
-    sentence = (f"The default step (fem.scene.SolverSettings(): {INTEGRATORS[integrator]}, {kind}; corotational, "
+    used = dict.fromkeys(numbers["integrators"])
+    which = " and ".join(f"{INTEGRATORS[i]} on {numbers['integrators'].count(i)}" for i in used) if n > 1 else \
+        INTEGRATORS[steps[0][0]]
+    name = f"{setting}: {which}" if setting == "auto" else INTEGRATORS[setting]
+    sentence = (f"The default step (fem.scene.SolverSettings(): {name}, {kind}; corotational, "
                 f"PCG {sci(tolerance)}, {at_dt}) is on the frontier on {numbers['on_frontier']} of {n} "
                 f"scenes, meets the {100 * ERROR_GOAL:g} % goal on {numbers['meets_goal']} of {n}, and takes "
                 f"{fmt(time, '.2f')} times the wall time per simulated second of backward Euler's one-solve "

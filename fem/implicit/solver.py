@@ -16,7 +16,7 @@ import taichi as ti
 
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
-from fem.implicit.integrators import History
+from fem.implicit.integrators import History, chosen
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
 from fem.implicit.potential import ROUNDOFF, IncrementalPotential
@@ -115,7 +115,8 @@ class ImplicitSolver:
         corotational, ground = model.any_corotational, self.switches.ground
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
-        target = self.history.target(settings.integrator, dt)
+        integrator = chosen(settings.integrator, self.switches.ground)    # "auto": by the scene
+        target = self.history.target(integrator, dt)
         h = target.h_per_dt * dt                                        # the integrator's effective step
         cM, cK = p.coefficients(h)
         self.refresh(cM, cK, h, dt)
@@ -134,7 +135,7 @@ class ImplicitSolver:
         self.turn_known = not ended_here                                # the turn of this step, recorded
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
-        self.history.apply(target, settings.integrator, p, state_in.x, state_in.v, h)   # x^, v^ (backward Euler: x_n, v_n)
+        self.history.apply(target, integrator, p, state_in.x, state_in.v, h)   # x^, v^ (backward Euler: x_n, v_n)
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale)
         if target.from_history:
@@ -156,7 +157,7 @@ class ImplicitSolver:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
         # the safeguards: finite, momentum (where no ground pushes), energy
-        trapezoidal = settings.integrator == "trapezoidal"          # it keeps the step's acceleration
+        trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
         accel = self.history.acceleration() if trapezoidal else p.v0
         bad, limited = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground, newton,
                                                   accel, trapezoidal)
@@ -167,7 +168,7 @@ class ImplicitSolver:
         self.end_known = model.version if newton and finite and limited == 0 else None
         self.finish(state_in.v, state_out.x, state_out.v, int(finite))
         if finite:
-            self.history.remember(settings.integrator, dt)
+            self.history.remember(integrator, dt)
         else:
             self.history.forget()
         self.last_dt = dt
