@@ -119,6 +119,13 @@ def test_stats_to_stdout_keeps_stdout_pure_json_and_the_summary_on_stderr(here):
     assert "ms/step" in err and "scene cube86" in err
 
 
+@pytest.mark.parametrize("argv, says", [((), "dt 0.02 s, trapezoidal (auto), solver"),
+                                        (("--integrator", "bdf2"), "dt 0.02 s, bdf2, solver")])
+def test_the_summary_names_the_integrator_the_steps_took(here, argv, says):
+    code, out, err = run("simulate", "cube86", "--steps", "2", *argv)
+    assert code == 0 and says in out, err
+
+
 def test_a_time_step_out_of_range_is_refused_before_the_run(here):
     # 1e6 s survives the step, 1e30 s did not: neither is a time step (a run whose every step is
     # rejected is tests/test_limits.py's)

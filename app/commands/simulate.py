@@ -17,6 +17,7 @@ from app import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, device
 from app import outputs
 from app.files import atomic_open, interrupts_deferred, refuse_overwrite
 from app.progress import Progress
+from fem.implicit.integrators import chosen
 from fem.mesh import mesh_quality
 
 
@@ -120,13 +121,19 @@ def preconditioner_note(sim):
     return f", {name} preconditioner" if name else ""
 
 
+def integrator_note(sim):
+    """"trapezoidal (auto)": the integrator the steps take, and whether "auto" chose it."""
+    integrator = chosen(sim.settings.integrator, sim.solver.switches.ground)
+    return integrator + (" (auto)" if sim.settings.integrator == "auto" else "")
+
+
 def summary(sim, rows):
     m = sim.model
     final = sim.stats()
     ms = rows["wall_ms"][1:] or rows["wall_ms"] or [0.0]
     iters = rows["solver_iters"] or [0]
     lines = [f"scene {sim.scene.name}: {m.n_tets} tets, {m.n_vertices} vertices, "
-             f"{len(m.bodies)} bodies, dt {sim.settings.dt:g} s, solver {sim.settings.method} "
+             f"{len(m.bodies)} bodies, dt {sim.settings.dt:g} s, {integrator_note(sim)}, solver {sim.settings.method} "
              f"(tol {sim.settings.tolerance:g}{preconditioner_note(sim)}), {fem.runtime.current().get('arch')} "
              f"{fem.runtime.current().get('precision')}"]
     for i, b in enumerate(m.bodies):
