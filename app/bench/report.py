@@ -190,7 +190,8 @@ def targets(results):
             lambda v: v <= 15, "rotation")
         add("box50k corotational, PCG 1e-3, one-solve step", ">= 60 steps/s", 1e3 / row["ms_median"], "steps/s",
             lambda v: v >= 60, "box50k")
-        newton = find(box, method="corotational", solver="pcg", step="newton", dt_factor=1, tolerance=1e-3)
+        newton = find(box, method="corotational", solver="pcg", step="newton", dt_factor=1, tolerance=1e-3,
+                      integrator="bdf2")                              # the row its "what limits it" describes
         add("box50k corotational, PCG 1e-3, Newton step", ">= 60 steps/s", newton and 1e3 / newton["ms_median"],
             "steps/s", lambda v: v >= 60, "newton")
     shares = [100 * r["rotation_ms"] / r["ms_median"] for s in results["scenes"]
