@@ -63,7 +63,8 @@ Redraw every figure in docs/ from the engine; each figure NAME is NAME.png and N
   accuracy_vs_time      the benchmark's plot, redrawn from docs/benchmark.json (`bench --docs`)
   hard_case_energy      a near-incompressible cube at dt 0.5 s: the one-solve step gains energy,
                         the Newton step never does
-  integrator_order      error against dt: backward Euler (first order) against BDF2 (second)
+  integrator_order      error against dt: backward Euler (first order) against BDF2 and the
+                        trapezoidal rule (second order)
 
 All of them take a few minutes on 2 CPU cores. docs/viewer.png is not made here: it is a
 screenshot of the window (`view epcot --compare`, then the p key)."""

@@ -22,6 +22,11 @@ RELATIVE, ABSOLUTE = 0.05, 1e-2
 # compared, and what the figure says of the rest: that it rises.
 UNSTABLE = {"hard_case_energy.total_energy.single"}
 FIRST_STEPS = 4
+# The Newton step on the hard case takes 98 % of the energy away in its first step (f32); what is left
+# carries the round-off of what was taken (4 to 5 % of it between an AVX-512 and an AVX2 processor), so
+# its energies agree to 5 % or to START_SHARE of the run's start energy.
+DISSIPATED = {"hard_case_energy.total_energy.newton"}
+START_SHARE = 2e-3
 
 
 def differences(made, committed, where=""):
@@ -35,6 +40,10 @@ def differences(made, committed, where=""):
             made, committed = made[:FIRST_STEPS], committed[:FIRST_STEPS]
         if len(made) != len(committed):
             return [(where, f"{len(made)} values", f"{len(committed)} values")]
+        if where in DISSIPATED and made:
+            floor = START_SHARE * max(abs(made[0]), abs(committed[0]))
+            return [(f"{where}[{i}]", a, b) for i, (a, b) in enumerate(zip(made, committed))
+                    if not math.isclose(a, b, rel_tol=RELATIVE, abs_tol=floor)]
         return [d for i, (a, b) in enumerate(zip(made, committed)) for d in differences(a, b, f"{where}[{i}]")]
     numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (made, committed))
     if numbers and where.replace(".largest_rise_over_start", ".total_energy") in UNSTABLE:
@@ -66,6 +75,12 @@ def test_the_comparison_finds_a_figure_that_no_longer_matches():
     assert differences({"total_energy": {"single": [1.0, 5.33]}}, committed) == [
         (".total_energy.single[1]", 5.33, 9.25)]
     assert differences({"total_energy": {"single": [1.0, 9.26]}}, committed) == []
+
+
+def test_a_dissipated_energy_is_compared_against_the_run_s_start():
+    where = "hard_case_energy.total_energy.newton"
+    assert differences([520.8, 9.29, 7.93], [520.8, 8.93, 7.52], where) == []   # AVX2 against AVX-512
+    assert differences([520.8, 9.29, 9.1], [520.8, 8.93, 7.52], where) == [(f"{where}[2]", 9.1, 7.52)]
 
 
 def test_a_run_that_blows_up_is_compared_by_its_first_steps_and_its_rise():

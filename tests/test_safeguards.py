@@ -76,8 +76,9 @@ def test_a_state_changed_behind_the_steps_back_is_measured_again(f64):
 def limited(rise_share):
     """A free box spinning at 3 rad/s about y and vibrating (x, v at the step's end), its total
     energy BEFORE the step set below its energy AFTER by rise_share of its vibration's kinetic
-    energy; the energy limit alone (fem/implicit/safeguards.py) then acts. Returns (sim, x, v, the
-    vibration's velocities, the energy BEFORE, the velocities after the limit)."""
+    energy; the energy limit alone (fem/implicit/safeguards.py) then acts, and leaves the energy
+    BEFORE and the momentum. Returns (masses (n, 1), x, v, the vibration's velocities, the
+    velocities after the limit)."""
     sim = fem.Simulation(make_scene(box_mesh(3), "corotational", E=1e4, nu=0.3))
     n, cap = sim.model.n_vertices, sim.model.capacity.vertices
     m = sim.model.mass_np[:, None]
@@ -99,25 +100,21 @@ def limited(rise_share):
     p.v.from_numpy(pad(v))
     guard.body_total[0, 0] = before
     guard.after_step(p.v0, p.x0, p.x, p.x, p.v, 0.02, 0.02, False, True, p.v0, False)
-    return sim, x, v, wobble, before, p.v.to_numpy()[:n].astype(np.float64)
+    limited_v = p.v.to_numpy()[:n].astype(np.float64)
+    sim.set_state(x, limited_v)               # what the limit left: the energy BEFORE, the same momentum
+    assert sim.stats()["total_energy"] == pytest.approx(before, rel=1e-12)
+    np.testing.assert_allclose((m * limited_v).sum(0), (m * v).sum(0), atol=1e-12)
+    return m, x, v, wobble, limited_v
 
 
 def test_the_energy_limit_takes_a_rise_out_of_the_deformation_and_keeps_the_spin(f64):
-    sim, x, v, wobble, before, limited_v = limited(0.5)
-    m = sim.model.mass_np[:, None]
-    sim.set_state(x, limited_v)
-    assert sim.stats()["total_energy"] == pytest.approx(before, rel=1e-12)
-    np.testing.assert_allclose((m * limited_v).sum(0), (m * v).sum(0), atol=1e-12)
+    m, x, v, wobble, limited_v = limited(0.5)
     np.testing.assert_allclose((m * np.cross(x, limited_v)).sum(0), (m * np.cross(x, v)).sum(0), atol=1e-11)
     np.testing.assert_allclose(limited_v, v - (1 - np.sqrt(0.5)) * wobble, atol=1e-12)   # the wobble scaled
 
 
 def test_a_rise_beyond_the_deformation_slows_the_motion_about_the_centre(f64):
-    sim, x, v, wobble, before, limited_v = limited(1.5)
-    m = sim.model.mass_np[:, None]
-    sim.set_state(x, limited_v)
-    assert sim.stats()["total_energy"] == pytest.approx(before, rel=1e-12)
-    np.testing.assert_allclose((m * limited_v).sum(0), (m * v).sum(0), atol=1e-12)
+    m, x, v, _, limited_v = limited(1.5)
     c = (m * v).sum(0) / m.sum()
     scale = (limited_v - c) / (v - c)
     np.testing.assert_allclose(scale, scale[0, 0], rtol=1e-9)   # every relative velocity by one factor
