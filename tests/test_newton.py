@@ -54,7 +54,7 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
     solver, potential, newton = sim.solver, sim.solver.potential, sim.solver.newton
     first, trial, energy, settle, step = (newton.evaluate_first, newton.evaluate_trial, potential.energy,
                                           newton.settle, solver.step)
-    paths, last = [], []        # per step: E of the start iterate, then of each accepted iterate
+    paths, last, slack = [], [], []   # per step: E of the start iterate, then of each accepted iterate
 
     def E():
         return potential.body_E.to_numpy()[:1]            # E_b of the scene's one body
@@ -74,15 +74,18 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
 
     def logged_step(*args):
         paths.append([])
-        return step(*args)
+        out = step(*args)
+        slack.append(newton.body_resolution.to_numpy()[:1])
+        return out
 
     newton.evaluate_first, newton.evaluate_trial = logged(first, start=True), logged(trial)
     potential.energy, newton.settle, solver.step = logged(energy), logged_settle, logged_step
     halvings = sum(sim.step()["line_search_steps"] for _ in range(12))
     assert halvings > 0, "the case must exercise the line search"
     assert sum(len(path) - 1 for path in paths) >= len(paths)   # Newton iterations were accepted
-    for path in paths:
-        assert all(b <= a for a, b in zip(path, path[1:])), path   # noqa: (1,) arrays
+    # a change within the round-off of E_b (body_resolution, set at the step's first iterate) is noise
+    for path, noise in zip(paths, slack):
+        assert all(b <= a + noise for a, b in zip(path, path[1:])), (path, noise)   # noqa: (1,) arrays
 
 
 def two_bodies(quiet_only=False, tolerance=1e-4, newton_tolerance=1e-3):

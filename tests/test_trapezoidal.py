@@ -120,6 +120,35 @@ def test_a_live_switch_of_integrator_restarts_the_history(f64):
         assert [sim.step()["integrator"] for _ in range(2)] == ["backward-euler", integrator]
 
 
+def guess_error(dt, t=0.2):
+    """The spinning box's last guess for v (Newton.first_iterate, the step's first iterate) at t,
+    against the converged step: max |guess - v| / max |v|; and the body's blend then."""
+    sim = spinning_box(integrator="trapezoidal")
+    sim.settings.dt, sim.settings.tolerance, sim.settings.max_iterations = dt, 1e-10, 5000
+    newton, n, seen = sim.solver.newton, sim.model.n_vertices, {}
+    first_iterate = newton.first_iterate
+
+    def recorded(*args):
+        first_iterate(*args)
+        seen["guess"] = newton.guess.to_numpy()[:n]
+
+    newton.first_iterate = recorded
+    for _ in range(round(t / dt)):
+        sim.step()
+    v = sim.velocities()
+    return np.abs(seen["guess"] - v).max() / np.abs(v).max(), newton.blend.to_numpy()[0]
+
+
+def test_its_guess_extrapolates_the_acceleration_where_the_motion_is_resolved(f64):
+    """The first iterate blends in the Adams-Bashforth guess from a_n as far as it fitted the
+    body's last step: where dt resolves the motion it takes all of it, and the guess is off by
+    O(dt^3), where extrapolating the velocity alone is off by O(dt^2)."""
+    coarse, _ = guess_error(0.005)
+    fine, blend = guess_error(0.0025)
+    assert blend >= 0.9, blend                                  # 0.99
+    assert coarse / fine >= 6.0, (coarse, fine)                 # 7.8: order 3 (linear: about 4)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("step", ["newton", "single"])
 def test_it_is_second_order(f64, step):

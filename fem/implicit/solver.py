@@ -16,7 +16,7 @@ import taichi as ti
 
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
-from fem.implicit.integrators import History, chosen
+from fem.implicit.integrators import TRAPEZOIDAL, History, chosen
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
 from fem.implicit.potential import ROUNDOFF, IncrementalPotential
@@ -137,7 +137,8 @@ class ImplicitSolver:
             self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
         self.history.apply(target, integrator, p, state_in.x, state_in.v, h)   # x^, v^ (backward Euler: x_n, v_n)
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
-        self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale)
+        a_n = self.history.acceleration() if target is TRAPEZOIDAL else None    # a closer guess
+        self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
         if target.from_history:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
         if ground:
@@ -219,7 +220,7 @@ class ImplicitSolver:
     def forget_change(self):
         """The next step starts its solve from v_n itself, and a two-step integrator starts
         again: after a new state, the last step says nothing about the next one."""
-        self.clear_change()
+        self.newton.forget_change()
         self.history.forget()
         self.preconditioning.forget()                         # the blocks are for other rotations
         self.last_dt = 0.0                                    # s, the dt of the step that made the change
@@ -274,21 +275,11 @@ class ImplicitSolver:
             self.potential.body_floor[b], self.newton.body_speed_floor[b] = floor[b], speed_floor[b]
 
     @ti.kernel
-    def clear_change(self):
-        """The last step's velocity change <- 0."""
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            self.newton.guess[i] = ti.Vector.zero(float, 3)
-
-    @ti.kernel
     def finish(self, v_n: ti.template(), x: ti.template(), v: ti.template(), good: ti.i32):
         """state_out <- the iterate (and x_end <- its x); the last change <- v - v_n for the next
-        step's guess (0 after a step whose result is not finite)."""
+        step's guess (Newton.remember_change)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             x[i], v[i] = self.potential.x[i], self.potential.v[i]
             self.x_end[i] = self.potential.x[i]
-            dv = ti.Vector.zero(float, 3)
-            if good:
-                dv = self.potential.v[i] - v_n[i]
-            self.newton.guess[i] = dv
+        self.newton.remember_change(v_n, self.potential.v, good)
