@@ -190,6 +190,10 @@ def test_headline_numbers_say_what_second_order_and_the_default_step_do(bench_ou
     assert row["dt"] == scene["dt"] and row["tolerance"] == plan.BASELINE_TOLERANCE
     assert default["time_over_single"] == pytest.approx(row["s_per_sim_s"] / single["s_per_sim_s"])
     assert default["on_frontier"] == (row["label"] in conclusions.frontier(scene))
+    others = [r for r in scene["variants"] if r["solver"] != "reference" and r["errors"]["0.2"] is not None]
+    beaten = any(o["s_per_sim_s"] < row["s_per_sim_s"]
+                 and o["errors"]["0.2"] + scene["reference_floor"] < row["errors"]["0.2"] for o in others)
+    assert default["on_frontier_beyond_floor"] == (not beaten) >= default["on_frontier"]
     assert default["meets_goal"] == (row["errors"]["0.2"] + scene["reference_floor"] <= plan.ERROR_GOAL)
     integrators = numbers["integrators"]
     for step in ("newton", "single"):
