@@ -114,6 +114,11 @@ def current():
     return {key: _current[key] for key in ("arch", "precision") if key in _current}
 
 
+def requested():
+    """(arch, precision, debug) as `init` was last asked for them; None before init."""
+    return _current.get("settings")
+
+
 # On the CPU every parallel loop pays ~50-100 us to wake Taichi's thread pool (measured on
 # 2-core machines), more than a small loop takes on one thread; below these sizes loops run serially.
 PARALLEL_MIN = {"tets": 8000, "vertices": 30000}

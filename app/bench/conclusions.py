@@ -97,9 +97,14 @@ def cheapest_to_goal(scene, step):
     return min(rows, key=lambda r: r["s_per_sim_s"], default=None)
 
 
+def measured_rows(scene):
+    """The variants with an error at the last checkpoint (the reference's rows aside)."""
+    return [r for r in scene["variants"] if r["solver"] != "reference" and final_error(r) is not None]
+
+
 def frontier_rows(scene):
     """Variants no other variant beats in both time per simulated second and accuracy (at the last checkpoint)."""
-    rows = [r for r in scene["variants"] if r["solver"] != "reference" and final_error(r) is not None]
+    rows = measured_rows(scene)
     return [r for r in sorted(rows, key=lambda r: r["s_per_sim_s"])
             if not any(o["s_per_sim_s"] < r["s_per_sim_s"] and final_error(o) <= final_error(r) for o in rows)]
 
@@ -112,8 +117,8 @@ def frontier(scene):
 def beaten_beyond_the_floor(scene, row):
     """Whether a faster variant is more accurate than `row` by more than the reference floor, the
     error axis's resolution: the frontier with differences the reference cannot tell apart as ties."""
-    return any(o["solver"] != "reference" and final_error(o) is not None and o["s_per_sim_s"] < row["s_per_sim_s"]
-               and final_error(o) + scene["reference_floor"] < final_error(row) for o in scene["variants"])
+    return any(o["s_per_sim_s"] < row["s_per_sim_s"] and final_error(o) + scene["reference_floor"] < final_error(row)
+               for o in measured_rows(scene))
 
 
 def default_step(scene):
@@ -297,7 +302,8 @@ def default_step_numbers(scenes, at_dt):
     sentence = (f"The default step (fem.scene.SolverSettings(): {name}, {kind}; corotational, "
                 f"PCG {sci(tolerance)}, {at_dt}) is on the frontier on {numbers['on_frontier']} of {n} "
                 f"scenes ({numbers['on_frontier_beyond_floor']} of {n} where beating it takes an error smaller "
-                f"by more than the reference floor), meets the {100 * ERROR_GOAL:g} % goal on {numbers['meets_goal']} of {n}, and takes "
+                f"by more than the reference floor), meets the {100 * ERROR_GOAL:g} % goal on "
+                f"{numbers['meets_goal']} of {n}, and takes "
                 f"{fmt(time, '.2f')} times the wall time per simulated second of backward Euler's one-solve "
                 f"step{over}.")
     return sentence, numbers

@@ -43,15 +43,14 @@ def observed_order(step="newton", integrators=tuple(INTEGRATORS)):
     reference stops at the round-off floor of the convergence test, and over its 320 steps that
     adds up to about 1e-4 m, more than the trapezoidal rule's error at dt 0.005 s. Taichi
     restarts in f64 for it and back, which ends every Simulation made before."""
-    running = fem.runtime.current()
-    if running.get("precision") == "f64":
+    arch, precision, debug = fem.runtime.requested() or ("cpu", "f32", False)
+    if precision == "f64":
         return measured_order(step, integrators)
-    arch = "cpu" if running.get("arch", "x64") in ("x64", "arm64") else "gpu"
-    fem.init(arch, "f64")
+    fem.init(arch, "f64", debug=debug)
     try:
         return measured_order(step, integrators)
     finally:
-        fem.init(arch, running.get("precision", "f32"))
+        fem.init(arch, precision, debug=debug)
 
 
 def measured_order(step, integrators):

@@ -209,10 +209,11 @@ class Newton:
             self.blend[b] = FIRST_BLEND
 
     @ti.func
-    def remember_change(self, v_n, v, good):
+    def remember_change(self, v_n, v, good, fit):
         """guess <- the step's change v - v_n, the next step's (0 after a step whose result is not
-        finite); each body's blend <- the share of its lead that would have guessed this step's
-        change best (least squares in the mass norm, clipped to [0, 1]; kept where it had none)."""
+        finite); after a step that had a lead (fit: the trapezoidal rule's), each body's blend <- the
+        share of its lead that would have guessed this step's change best (least squares in the mass
+        norm, clipped to [0, 1]; kept where it had none)."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_fit[b] = ti.Vector.zero(ti.f64, 3)
@@ -222,6 +223,7 @@ class Newton:
             change = ti.Vector.zero(float, 3)
             if good:
                 change = v[i] - v_n[i]
+            if good and fit:
                 missed = v[i] - self.guess[i] + self.blend[b] * self.lead[i]   # the change less the linear guess
                 m = ti.cast(self.model.mass[i], ti.f64)
                 self.body_fit[b] += m * ti.Vector([ti.cast(missed.dot(self.lead[i]), ti.f64),
@@ -229,7 +231,7 @@ class Newton:
                                                    ti.cast(missed.norm_sqr(), ti.f64)])
             self.guess[i] = change
         ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
+        for b in range(self.model.body_count[None] * fit):
             along, lead, missed = self.body_fit[b][0], self.body_fit[b][1], self.body_fit[b][2]
             if lead > 0 and missed > 0:
                 # the best share, times the share of the miss it explains (cos^2 of their angle):

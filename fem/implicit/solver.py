@@ -167,7 +167,7 @@ class ImplicitSolver:
         # the rotations and elastic energies the next step can reuse: those of its x_n, unless
         # a body was sent back to x_n
         self.end_known = model.version if newton and finite and limited == 0 else None
-        self.finish(state_in.v, state_out.x, state_out.v, int(finite))
+        self.finish(state_in.v, state_out.x, state_out.v, int(finite), int(a_n is not None))
         if finite:
             self.history.remember(integrator, dt)
         else:
@@ -275,11 +275,11 @@ class ImplicitSolver:
             self.potential.body_floor[b], self.newton.body_speed_floor[b] = floor[b], speed_floor[b]
 
     @ti.kernel
-    def finish(self, v_n: ti.template(), x: ti.template(), v: ti.template(), good: ti.i32):
+    def finish(self, v_n: ti.template(), x: ti.template(), v: ti.template(), good: ti.i32, fit: ti.i32):
         """state_out <- the iterate (and x_end <- its x); the last change <- v - v_n for the next
-        step's guess (Newton.remember_change)."""
+        step's guess, and after a trapezoidal step (fit) each body's blend (Newton.remember_change)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             x[i], v[i] = self.potential.x[i], self.potential.v[i]
             self.x_end[i] = self.potential.x[i]
-        self.newton.remember_change(v_n, self.potential.v, good)
+        self.newton.remember_change(v_n, self.potential.v, good, fit)
