@@ -99,8 +99,6 @@ def limited(rise_share):
     p.x.from_numpy(pad(x))
     p.v.from_numpy(pad(v))
     guard.body_total[0, 0] = before
-    sim.solver.update_rotations(p.x, True)            # R at x, as at the line search's last trial,
-    p.energy(p.v0, p.x, p.v, 0.02, 1)                 # whose energy pass sums what the limit reads
     guard.after_step(p.v0, p.x0, p.x, p.x, p.v, 0.02, 0.02, False, True, p.v0, False)
     limited_v = p.v.to_numpy()[:n].astype(np.float64)
     sim.set_state(x, limited_v)               # what the limit left: the energy BEFORE, the same momentum

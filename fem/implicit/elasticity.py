@@ -7,9 +7,7 @@ Elastic forces f(x), the stiffness product K(R) d and the energy Psi(x) share th
 function of fem/elastic.py and the rotated matrix Bm R^T of fem/implicit/rotations.py.
 
 Fields (m tets of the capacity):
-    corner (4m, 3)        per-corner values before the gather (N, or N/m times m/s)
-    body_elastic (bodies,)   each body's elastic energy Psi_b at the last pass that summed it
-                          (J, float64): the safeguards' and the potential's energy passes
+    corner (4m, 3)   per-corner values before the gather (N, or N/m times m/s)
 """
 
 import taichi as ti
@@ -30,7 +28,6 @@ class Elasticity:
         self.model, self.rotations, self.sleep = model, rotations, sleep
         self.serial_tets, self.serial_vertices = switches.serial_tets, switches.serial_vertices
         self.corner = ti.Vector.field(3, float, 4 * model.capacity.tets)
-        self.body_elastic = ti.field(ti.f64, model.capacity.bodies)
 
     @ti.func
     def store_corners(self, e, f: ti.template()):

@@ -125,24 +125,18 @@ class IncrementalPotential:
         tets at a time (as in Safeguards.body_energy); corner <- the tet terms of grad E at
         (x, v), in the same pass: a trial iterate the line search accepts needs its gradient
         next. moving=0: v is 0 (as in gradient_corners), so the damping terms are too."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.elasticity.body_elastic[b] = 0.0
         n = self.model.tet_count[None]
         ti.loop_config(serialize=self.serial_tets)
         for c in range((n + TET_CHUNK - 1) // TET_CHUNK):
-            body, total, elastic = -1, ti.cast(0.0, ti.f64), ti.cast(0.0, ti.f64)
+            body, total = -1, ti.cast(0.0, ti.f64)
             for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
                 if self.model.tet_body[e] != body:
                     if body >= 0:
                         self.body_E[body] += total
-                        self.elasticity.body_elastic[body] += elastic
-                    body, total, elastic = self.model.tet_body[e], 0.0, 0.0
+                    body, total = self.model.tet_body[e], 0.0
                 B = self.gradient_tet(x, v, dt, moving, e)
                 awake = ti.cast(self.sleep.tet_awake(e), ti.f64)
-                psi = self.elasticity.elastic_energy(x, e)
-                elastic += psi
-                total += awake * psi
+                total += awake * self.elasticity.elastic_energy(x, e)
                 if ti.static(self.has_stiffness_damping) and moving:
                     W = ti.cast(self.model.rest_volume[e], ti.f64)
                     mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
@@ -151,7 +145,6 @@ class IncrementalPotential:
                     total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
             if body >= 0:
                 self.body_E[body] += total
-                self.elasticity.body_elastic[body] += elastic
 
     # ------------------------------------------------------------ grad E
 

@@ -29,9 +29,8 @@ Fields (bodies of the capacity; energies summed in float64):
     body_spin (bodies, 3)        its angular momentum about the centre (kg m^2/s), then omega (1/s)
     body_inertia (bodies, 3x3)   its inertia tensor about the centre, kg m^2
     body_pinned (bodies,)        1: the body has pinned vertices
-(and the elasticity's body_elastic: each body's elastic energy when last summed, J. The total
-AFTER a Newton step takes it from the line search's last energy pass, at the same x and R; a step
-that starts where the last one ended reuses it BEFORE.)
+    body_elastic (bodies,)       its elastic energy when last summed, J: a step that starts where
+                                 the last one ended (the same positions and rotations) reuses it
 """
 
 import taichi as ti
@@ -65,6 +64,7 @@ class Safeguards:
         self.body_spin = ti.Vector.field(3, ti.f64, nb)
         self.body_inertia = ti.Matrix.field(3, 3, ti.f64, nb)
         self.body_pinned = ti.field(ti.i32, nb)
+        self.body_elastic = ti.field(ti.f64, nb)
 
     @ti.kernel
     def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), x: ti.template(),
@@ -84,8 +84,8 @@ class Safeguards:
             for i in range(self.model.vertex_count[None]):
                 accel[i] = (v[i] - v0[i]) / h
         limited = 0
-        if ti.static(energy):       # a Newton step: its last energy pass summed the elastic energies at x
-            self.total_energy(x, v, AFTER, 0)
+        if ti.static(energy):
+            self.total_energy(x, v, AFTER, 1)
             limited = self.limit_energy(x_n, x, v, dt, accel, keep)
         return ti.Vector([bad, limited], ti.i32)
 
@@ -138,11 +138,10 @@ class Safeguards:
         elastic with the rotations extracted at x (kept in body_elastic; tets=0: taken from it);
         body_total_size[when, b] <- the sum of the sizes of its terms (J), the scale of its
         round-off. when: BEFORE or AFTER the step."""
-        body_elastic = ti.static(self.elasticity.body_elastic)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             if tets:
-                body_elastic[b] = 0.0
+                self.body_elastic[b] = 0.0
         # A body's tets are contiguous: each chunk of tets sums into a running total and adds it
         # to body_elastic once per body it meets, not once per tet (threads would fight over it).
         n = self.model.tet_count[None]
@@ -152,14 +151,14 @@ class Safeguards:
             for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
                 if self.model.tet_body[e] != body:
                     if body >= 0:
-                        body_elastic[body] += elastic
+                        self.body_elastic[body] += elastic
                     body, elastic = self.model.tet_body[e], 0.0
                 elastic += self.elasticity.elastic_energy(x, e)
             if body >= 0:
-                body_elastic[body] += elastic
+                self.body_elastic[body] += elastic
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            self.body_total[when, b], self.body_total_size[when, b] = body_elastic[b], body_elastic[b]
+            self.body_total[when, b], self.body_total_size[when, b] = self.body_elastic[b], self.body_elastic[b]
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
