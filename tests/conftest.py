@@ -21,8 +21,13 @@ def f64():
 
 @pytest.fixture
 def f32():
-    """Taichi on the CPU in single precision, as the command line runs it (a restart only after f64)."""
+    """Taichi on the CPU in single precision, as the command line runs it (a restart only after
+    f64); a module running in f64 (the module-wide fixture above) gets it back after the test."""
+    before = fem.runtime.current().get("precision")
     fem.init("cpu", "f32")
+    yield
+    if before == "f64":
+        fem.init("cpu", "f64")
 
 
 @pytest.fixture

@@ -223,6 +223,7 @@ class ImplicitSolver:
         self.newton.forget_change()
         self.history.forget()
         self.preconditioning.forget()                         # the blocks are for other rotations
+        self.safeguards.forget_band()                         # energy is measured from the new state
         self.last_dt = 0.0                                    # s, the dt of the step that made the change
         self.end_known = None         # the model version whose R and elastic energies at x_n are known
         self.turn_known = False       # the rotations' turn field holds the last step's turn
