@@ -194,6 +194,9 @@ def test_headline_numbers_say_what_second_order_and_the_default_step_do(bench_ou
     beaten = any(o["s_per_sim_s"] < row["s_per_sim_s"]
                  and o["errors"]["0.2"] + scene["reference_floor"] < row["errors"]["0.2"] for o in others)
     assert default["on_frontier_beyond_floor"] == (not beaten) >= default["on_frontier"]
+    beaten = any(o["s_per_sim_s"] * (1 + conclusions.TIME_RESOLUTION) < row["s_per_sim_s"]
+                 and o["errors"]["0.2"] + scene["reference_floor"] < row["errors"]["0.2"] for o in others)
+    assert default["on_frontier_beyond_resolution"] == (not beaten) >= default["on_frontier_beyond_floor"]
     assert default["meets_goal"] == (row["errors"]["0.2"] + scene["reference_floor"] <= plan.ERROR_GOAL)
     integrators = numbers["integrators"]
     for step in ("newton", "single"):
@@ -210,6 +213,23 @@ def test_headline_numbers_say_what_second_order_and_the_default_step_do(bench_ou
         assert integrators["frontier_scenes"][integrator] == any(r["integrator"] == integrator for r in frontier)
         assert integrators["frontier_points"][integrator] == sum(r["integrator"] == integrator for r in frontier)
     assert f"on the frontier on {default['on_frontier']} of 1 scenes" in results["headline"][2]
+
+
+def test_a_variant_beats_the_default_only_beyond_both_axes_resolutions():
+    """A frontier that counts differences neither the reference (its floor) nor the machine's timing
+    noise (TIME_RESOLUTION) can resolve as ties: a variant 5 % faster is no faster, one 3 % more
+    accurate with a floor of 10 % no more accurate; only one beyond both beats the default."""
+    def row(label, time, error):
+        return {"label": label, "solver": "pcg", "s_per_sim_s": time, "errors": {"2": error}}
+
+    default = row("default", 1.0, 1e-3)
+    scene = {"reference_floor": 1e-4, "variants": [default, row("5 % faster, far more accurate", 0.95, 5e-4),
+                                                   row("twice as fast, 3 % more accurate", 0.5, 9.7e-4)]}
+    assert conclusions.frontier(scene) == ["twice as fast, 3 % more accurate", "5 % faster, far more accurate"]
+    assert conclusions.beaten_beyond_the_floor(scene, default)
+    assert not conclusions.beaten_beyond_resolution(scene, default)
+    scene["variants"].append(row("twice as fast, far more accurate", 0.5, 5e-4))
+    assert conclusions.beaten_beyond_resolution(scene, default)
 
 
 def test_a_direct_row_says_where_its_time_goes(bench_output):

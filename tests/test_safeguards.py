@@ -168,7 +168,7 @@ def test_a_rise_beyond_the_band_is_taken_down_to_its_middle(f64):
         guard.body_total[0, 0] = after - 0.5 * band              # BEFORE: within the band
         guard.body_lowest[0] = after - above * band
         guard.body_scale[0] = -1.0
-        _, limits = guard.after_step(p.v0, p.x0, p.x, p.x, p.v, 0.02, 0.02, False, True, p.v0, False)
+        _, limits, _ = guard.after_step(p.v0, p.x0, p.x, p.x, p.v, 0.02, 0.02, False, True, p.v0, False)
         sim.set_state(sim.positions(), p.v.to_numpy()[:n].astype(np.float64))
         ends[above] = (limits, sim.stats()["total_energy"] - (after - above * band))
     assert ends[0.9] == (0, pytest.approx(0.9 * band, rel=1e-2))       # within the band: left alone

@@ -51,7 +51,7 @@ from fem.implicit.potential import ROUNDOFF
 from fem.runtime import epsilon
 
 BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
-TWO_I32 = ti.types.vector(2, ti.i32)
+THREE_I32 = ti.types.vector(3, ti.i32)
 
 
 @ti.data_oriented
@@ -86,9 +86,9 @@ class Safeguards:
     @ti.kernel
     def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), x: ti.template(),
                    v: ti.template(), h: float, dt: float, momentum: ti.template(),
-                   energy: ti.template(), accel: ti.template(), keep: ti.template()) -> TWO_I32:
+                   energy: ti.template(), accel: ti.template(), keep: ti.template()) -> THREE_I32:
         """The step's last checks on its iterate x, v, in one launch: returns (vertices not
-        finite, bodies energy-limited). momentum: `restore_momentum`; energy: the total
+        finite, bodies energy-limited, bodies of those sent back to x_n). momentum: `restore_momentum`; energy: the total
         energy AFTER and `limit_energy` (x_n: the step's start). keep: accel <- the step's
         acceleration (v - v^) / h, what the forces did, before the energy limit takes any away
         (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller discards a
@@ -100,11 +100,11 @@ class Safeguards:
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(self.model.vertex_count[None]):
                 accel[i] = (v[i] - v0[i]) / h
-        limited = 0
+        limited = ti.Vector([0, 0], ti.i32)
         if ti.static(energy):
             self.total_energy(x, v, AFTER, 1)
             limited = self.limit_energy(x_n, x, v, dt, accel, keep)
-        return ti.Vector([bad, limited], ti.i32)
+        return ti.Vector([bad, limited[0], limited[1]], ti.i32)
 
     @ti.func
     def check_finite(self, x: ti.template(), v: ti.template()):
@@ -214,9 +214,11 @@ class Safeguards:
                      keep: ti.template()):
         """Take each rise out of the body's deformation, or else its motion about its centre
         (module docstring; x0: the step's start). keep: a body sent back to x0 gets accel <- 0,
-        the step's is not for x0. Returns how many bodies were limited."""
+        the step's is not for x0. Returns how many bodies were limited, and how many of them
+        were sent back to x0 (the others keep their positions, so their elastic energies and
+        rotations are still those at x)."""
         self.rigid_motion(x, v)
-        limited = 0
+        limited, sent_back = 0, 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             energy, allowance = self.body_total[AFTER, b], self.allowance(b, self.body_total_size[AFTER, b])
@@ -233,6 +235,7 @@ class Safeguards:
                     deformation = spin
                 else:
                     spin = -1.0                  # cannot be absorbed: keep x_n, at rest
+                    sent_back += 1
             self.body_kinetic[b], self.body_deformation[b] = spin, deformation   # reused: the factors
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
@@ -250,7 +253,7 @@ class Safeguards:
                 w = ti.cast(v[i], ti.f64) - c - turn
                 u = c + self.body_kinetic[b] * turn + self.body_deformation[b] * w
                 v[i] = ti.cast(u * self.model.free[i], float)
-        return limited
+        return ti.Vector([limited, sent_back], ti.i32)
 
     @ti.func
     def rigid_motion(self, x: ti.template(), v: ti.template()):

@@ -160,13 +160,14 @@ class ImplicitSolver:
         # the safeguards: finite, momentum (where no ground pushes), energy
         trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
         accel = self.history.acceleration() if trapezoidal else p.v0
-        bad, limited = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground, newton,
+        bad, limited, sent_back = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground, newton,
                                                   accel, trapezoidal)
         finite = bad == 0 and math.isfinite(solved.rho)
         limited = int(limited) if finite else 0
         # the rotations and elastic energies the next step can reuse: those of its x_n, unless
-        # a body was sent back to x_n
-        self.end_known = model.version if newton and finite and limited == 0 else None
+        # a body was sent back to x_n (a limit that only scaled velocities keeps them: the next
+        # step then measures its energy BEFORE with the very sums the limit aimed at)
+        self.end_known = model.version if newton and finite and sent_back == 0 else None
         self.finish(state_in.v, state_out.x, state_out.v, int(finite), int(a_n is not None))
         if finite:
             self.history.remember(integrator, dt)
