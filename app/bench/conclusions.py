@@ -117,18 +117,18 @@ def frontier(scene):
     return [r["label"] for r in frontier_rows(scene)]
 
 
-def beaten_beyond_the_floor(scene, row):
-    """Whether a faster variant is more accurate than `row` by more than the reference floor, the
-    error axis's resolution: the frontier with differences the reference cannot tell apart as ties."""
-    return any(o["s_per_sim_s"] < row["s_per_sim_s"] and final_error(o) + scene["reference_floor"] < final_error(row)
-               for o in measured_rows(scene))
+def beaten_beyond_the_floor(scene, row, time_margin=0.0):
+    """Whether a variant faster than `row` (by more than time_margin, a fraction of its time) is more
+    accurate by more than the reference floor, the error axis's resolution: the frontier with
+    differences the reference cannot tell apart as ties."""
+    return any(o["s_per_sim_s"] * (1 + time_margin) < row["s_per_sim_s"]
+               and final_error(o) + scene["reference_floor"] < final_error(row) for o in measured_rows(scene))
 
 
 def beaten_beyond_resolution(scene, row):
-    """Whether a variant is both faster than `row` by more than TIME_RESOLUTION and more accurate by
-    more than the reference floor: the frontier with the differences neither axis resolves as ties."""
-    return any(o["s_per_sim_s"] * (1 + TIME_RESOLUTION) < row["s_per_sim_s"]
-               and final_error(o) + scene["reference_floor"] < final_error(row) for o in measured_rows(scene))
+    """`beaten_beyond_the_floor` with the time axis's resolution too: neither axis's unresolved
+    differences beat `row`."""
+    return beaten_beyond_the_floor(scene, row, TIME_RESOLUTION)
 
 
 def default_step(scene):

@@ -88,8 +88,8 @@ class Safeguards:
                    v: ti.template(), h: float, dt: float, momentum: ti.template(),
                    energy: ti.template(), accel: ti.template(), keep: ti.template()) -> THREE_I32:
         """The step's last checks on its iterate x, v, in one launch: returns (vertices not
-        finite, bodies energy-limited, bodies of those sent back to x_n). momentum: `restore_momentum`; energy: the total
-        energy AFTER and `limit_energy` (x_n: the step's start). keep: accel <- the step's
+        finite, bodies energy-limited, how many of those were sent back to x_n). momentum:
+        `restore_momentum`; energy: the total energy AFTER and `limit_energy` (x_n: the step's start). keep: accel <- the step's
         acceleration (v - v^) / h, what the forces did, before the energy limit takes any away
         (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller discards a
         result that is not finite, whatever these did with it."""

@@ -160,8 +160,8 @@ class ImplicitSolver:
         # the safeguards: finite, momentum (where no ground pushes), energy
         trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
         accel = self.history.acceleration() if trapezoidal else p.v0
-        bad, limited, sent_back = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground, newton,
-                                                  accel, trapezoidal)
+        bad, limited, sent_back = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground,
+                                                             newton, accel, trapezoidal)
         finite = bad == 0 and math.isfinite(solved.rho)
         limited = int(limited) if finite else 0
         # the rotations and elastic energies the next step can reuse: those of its x_n, unless
