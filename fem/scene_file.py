@@ -144,7 +144,7 @@ def read_toml_scene(path, build_mesh, data=None):
         path=str(path),
         bodies=bodies,
         effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
-        solver=read_solver(top.table("solver", ["dt", "step", "integrator", "max_newton", "newton_tolerance", "method", "tolerance",
+        solver=read_solver(top.table("solver", ["dt", "step", "integrator", "rho_infinity", "max_newton", "newton_tolerance", "method", "tolerance",
                                                  "max_iterations", "jacobi_omega", "preconditioner", "rotations", "sleep"])),
     )
     scene.solver.check(f"{path}: solver")
@@ -298,6 +298,7 @@ def read_solver(t):
     s.dt = t.get("dt", "float", s.dt)
     s.step = t.get("step", "str", s.step)
     s.integrator = t.get("integrator", "str", s.integrator)
+    s.rho_infinity = t.get("rho_infinity", "float", s.rho_infinity)
     s.max_newton = t.get("max_newton", "int", s.max_newton)
     s.newton_tolerance = t.get("newton_tolerance", "float", s.newton_tolerance)
     s.method = t.get("method", "str", s.method)

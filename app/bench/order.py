@@ -22,16 +22,22 @@ INTEGRATORS = {"backward-euler": "backward Euler", "bdf2": "BDF2", "trapezoidal"
 GUIDES = (("backward-euler", 1), ("bdf2", 2))   # the slopes drawn, each through one integrator's coarsest point
 
 
+def twisting_state(dt, integrator, tolerance=1e-10, step="newton"):
+    """(scene, x, v): the spinning, twisting bar at dt, its state at t = 0 (fem.init first)."""
+    mesh = box(size=(2.0, 0.5, 0.5), cells=(4, 1, 1), split=6)
+    solver = SolverSettings(dt=dt, integrator=integrator, step=step, tolerance=tolerance, newton_tolerance=1e-12,
+                            max_newton=100, max_iterations=1000, sleep=False)
+    scene = Scene("twisting bar", [Body("bar", mesh, Material(2e3, 0.3, 1000.0), "corotational")], solver=solver)
+    x = mesh.vertices.astype(np.float64)
+    v = np.cross([1.0, 2.0, 0.0], x - x.mean(0)) + np.cross([3.0, 0.0, 0.0], x) * x[:, :1]
+    return scene, x, v - v.mean(0)
+
+
 def twisting_bar(dt, integrator, step="newton"):
     """Positions (n, 3) of the spinning, twisting bar after SECONDS at dt (fem.init first)."""
-    mesh = box(size=(2.0, 0.5, 0.5), cells=(4, 1, 1), split=6)
-    solver = SolverSettings(dt=dt, integrator=integrator, step=step, tolerance=1e-10, newton_tolerance=1e-12,
-                            max_newton=100, max_iterations=1000, sleep=False)
-    sim = fem.Simulation(Scene("twisting bar", [Body("bar", mesh, Material(2e3, 0.3, 1000.0), "corotational")],
-                               solver=solver))
-    x = sim.positions()
-    v = np.cross([1.0, 2.0, 0.0], x - x.mean(0)) + np.cross([3.0, 0.0, 0.0], x) * x[:, :1]
-    sim.set_state(x, v - v.mean(0))
+    scene, x, v = twisting_state(dt, integrator, step=step)
+    sim = fem.Simulation(scene)
+    sim.set_state(x, v)
     for _ in range(round(SECONDS / dt)):
         sim.step()
     return sim.positions()

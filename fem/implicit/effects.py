@@ -74,6 +74,11 @@ class Effects:
         self.ground[None] = effects.ground or 0.0
         self.friction[None] = effects.friction
 
+    @property
+    def damped(self):
+        """Rayleigh damping is on: the step dissipates by its own design."""
+        return self.alpha > 0 or self.beta > 0
+
     def set_dt(self, dt):
         """The contact's stiffness follows the scene's dt (not an integrator's own h), so that
         the contact energy of a state does not change from one step to the next."""

@@ -19,9 +19,13 @@ safeguard (fem/implicit/safeguards.py) scales anything back: the next step goes 
 state the safeguard left with the forces that act there. Nothing damps its fastest modes,
 so on a non-convex energy it leans on that safeguard more than BDF2.
 
-Both need the previous step: the first step of a run, and the first after anything that
-breaks the history (an impulse, a new state, a change of dt or of integrator, a rejected
-step), is backward Euler (`History.target`). Sleeping bodies keep their place exactly.
+The trapezoidal rule is a one-step scheme: after anything that breaks the history (the first
+step, an impulse, a new state, a live edit, a change of dt or of integrator, a rejected step)
+its a_n is the acceleration the forces give at the step's start (`History.fresh`; the solver
+computes it). BDF2 needs the previous step: its first step after a break is a trapezoidal
+step, so that a second-order run never takes a first-order step (a backward Euler start cost
+a falling body 0.5 g dt^2 and a spinning one 2 % of its energy). Sleeping bodies keep their
+place exactly.
 
 "auto", the default, is the trapezoidal rule, but BDF2 in a scene with a ground (`chosen`): the
 ground's penalty is far stiffer than any body (fem/implicit/effects.py), and the trapezoidal
@@ -53,10 +57,27 @@ class Target:
         return self.b != 0.0 or self.c != 0.0
 
 
+    @property
+    def one_step(self):
+        """The theta family (the trapezoidal rule and its damped kin): a_n, not x_(n-1), carries the history."""
+        return self.c != 0.0
+
+
+def theta_rule(rho):
+    """The generalised trapezoidal rule with numerical dissipation rho_infinity = rho in [0, 1]:
+    x_(n+1) = x_n + dt ((1 - theta) v_n + theta v_(n+1)), v likewise with a, theta = 1 / (1 + rho),
+    so x^ = x_n + rho h v_n, v^ = v_n + rho h a_n with h = theta dt. A mode far faster than 1/dt
+    is multiplied by -rho each step (rho = 1: the trapezoidal rule, which keeps it; rho = 0:
+    backward Euler, which removes it at once); one resolved at frequency omega loses about
+    (theta - 1/2) (omega dt)^2 of its energy a step, so rho near 1 damps only what dt cannot
+    follow."""
+    return Target("trapezoidal", 1.0, 0.0, 1.0 / (1.0 + rho), rho)
+
+
 BACKWARD_EULER = Target("backward-euler", 1.0, 0.0, 1.0)
 BDF2 = Target("bdf2", 4.0 / 3.0, -1.0 / 3.0, 2.0 / 3.0)
-TRAPEZOIDAL = Target("trapezoidal", 1.0, 0.0, 0.5, 1.0)
-TWO_STEP = {"bdf2": BDF2, "trapezoidal": TRAPEZOIDAL}     # the integrators that need the last step
+TRAPEZOIDAL = theta_rule(1.0)
+TWO_STEP = ("bdf2", "trapezoidal")     # the integrators that need the last step
 
 
 def chosen(integrator, ground):
@@ -80,12 +101,22 @@ class History:
         """The next step starts the history again (backward Euler)."""
         self.dt = None                            # s: the dt of the step whose start is kept
         self.integrator = None                    # and the integrator that kept it
+        self.version = None                       # and the model's version (materials, methods) then
+        self.fresh = False                        # the next step's a_n comes from its start's forces
 
-    def target(self, integrator, dt):
-        """The Target of the next step of `integrator` at dt."""
-        if integrator in TWO_STEP and (self.dt, self.integrator) == (dt, integrator):
-            return TWO_STEP[integrator]
-        return BACKWARD_EULER
+    def target(self, integrator, dt, version=None, rho=1.0):
+        """The Target of the next step of `integrator` at dt (version: the model's, whose forces
+        a_n was taken with). The trapezoidal rule is a one-step scheme: it needs a_n, which the
+        last step's update gives, or else the forces at the step's start (`fresh`: the solver
+        computes it there). BDF2 needs the last step: its first is a trapezoidal step, second
+        order too, so that no step of a second-order run is first order."""
+        known = (self.dt, self.integrator, self.version) == (dt, integrator, version)
+        self.fresh = integrator in TWO_STEP and not known
+        if integrator == "bdf2" and known:
+            return BDF2
+        if integrator == "trapezoidal":
+            return theta_rule(rho)
+        return TRAPEZOIDAL if integrator in TWO_STEP else BACKWARD_EULER
 
     def apply(self, target, integrator, potential, x, v, h):
         """x0, v0 of the potential (x_n, v_n after its `begin`) <- the target's x^, v^ (h: its
@@ -96,16 +127,16 @@ class History:
                 n = self.model.capacity.vertices
                 self.x_prev, self.v_prev = ti.Vector.field(3, float, n), ti.Vector.field(3, float, n)
             self.advance(potential.x0, potential.v0, x, v, target.a, target.b, int(target.b != 0.0))
-        elif target is TRAPEZOIDAL:
-            self.half_step(potential.x0, potential.v0, h)
+        if target.one_step:
+            self.half_step(potential.x0, potential.v0, target.c * h)
 
-    def remember(self, integrator, dt):
+    def remember(self, integrator, dt, version=None):
         """After a good step at dt: the next step of a two-step integrator may use what `apply`
         kept (BDF2) or the acceleration the step's safeguards kept (trapezoidal)."""
         if integrator not in TWO_STEP:
             self.forget()
             return
-        self.dt, self.integrator = dt, integrator
+        self.dt, self.integrator, self.version = dt, integrator, version
 
     def acceleration(self):
         """The field of a_n (made on first use), which the step's safeguards write."""
@@ -127,7 +158,7 @@ class History:
 
     @ti.kernel
     def half_step(self, x0: ti.template(), v0: ti.template(), h: float):
-        """x0, v0 <- x_n + h v_n, v_n + h a_n (a sleeping body keeps x_n, v_n)."""
+        """x0, v0 <- x_n + h v_n, v_n + h a_n (h: rho times the step's h; a sleeping body keeps x_n, v_n)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             if self.sleep.awake[self.model.vertex_body[i]]:

@@ -29,7 +29,7 @@ Fields (n vertices, bodies of the capacity):
     rhs (n, 3)            -grad E at the accepted iterate (unfiltered), N s
     body_E (bodies,)      E_b at the last iterate evaluated, J
     body_gradient (bodies,)   |grad_b E|^2, (N s)^2
-    body_scale (bodies,)  s_b^2 of this step: the size of its terms, (N s)^2
+    body_scale (bodies,)  s_b^2 at the last iterate: the size of its terms there, (N s)^2
     body_momentum (bodies,)   |M v^|_b^2, (N s)^2
     body_floor (bodies,)  round-off floor of |grad_b|^2, (N s)^2
     body_weight (bodies,) 1 / (tol^2 s_b^2 + floor_b): weights of the residuals' norm
@@ -196,13 +196,13 @@ class IncrementalPotential:
     def gather_gradient(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt, tolerance, first,
                         moving):
         """rhs <- -grad E = M v^ + dt M g - (1 + dt alpha) M v - (gathered tet terms) + (the
-        ground's), and the per-body |grad_b|^2; on the step's first call also the per-body
-        scale s_b^2. Returns `gradient_norm` (moving: v is not 0)."""
+        ground's), the per-body |grad_b|^2 and the per-body scale s_b^2 at this iterate (on the
+        step's first call also |M v^|^2). Returns `gradient_norm` (moving: v is not 0)."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            self.body_gradient[b] = 0.0
+            self.body_gradient[b], self.body_scale[b] = 0.0, 0.0
             if first:
-                self.body_scale[b], self.body_momentum[b] = 0.0, 0.0
+                self.body_momentum[b] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = self.model.mass[i]
@@ -216,11 +216,14 @@ class IncrementalPotential:
             self.rhs[i] = rhs
             b = self.model.vertex_body[i]
             self.body_gradient[b] += ti.cast(self.effects.filtered(i, rhs).norm_sqr(), ti.f64)
-            if first:   # |M v_n|^2 + |dt f|^2 + |dt M g|^2: not |rhs|^2, which is ~0 at rest
-                momentum = ti.cast(self.effects.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
+            # the scale, at this iterate: |M v^|^2 + |dt f|^2 + |dt M g|^2, not |rhs|^2 (~0 at rest).
+            # Taken at the first iterate only, a guess that strains a stiff body inflated it 7 to
+            # 5,500 times, and "converged" steps carried residuals that many times the tolerance
+            momentum = ti.cast(self.effects.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
+            if first:
                 self.body_momentum[b] += momentum
-                self.body_scale[b] += momentum + ti.cast(self.effects.filtered(i, tets).norm_sqr()
-                                                         + self.effects.filtered(i, g).norm_sqr(), ti.f64)
+            self.body_scale[b] += momentum + ti.cast(self.effects.filtered(i, tets).norm_sqr()
+                                                     + self.effects.filtered(i, g).norm_sqr(), ti.f64)
         return self.gradient_norm(tolerance, first, moving)
 
     @ti.func
@@ -234,11 +237,10 @@ class IncrementalPotential:
         rho = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            if first:
-                self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b]
-                                                     + self.body_floor[b]), float)
-                if self.body_momentum[b] > self.body_floor[b] and not moving:
-                    rho += 2.0
+            self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b]),
+                                          float)
+            if first and self.body_momentum[b] > self.body_floor[b] and not moving:
+                rho += 2.0
             rho += self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b])
         return rho
 

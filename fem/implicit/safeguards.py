@@ -51,7 +51,11 @@ from fem.implicit.potential import ROUNDOFF
 from fem.runtime import epsilon
 
 BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
-THREE_I32 = ti.types.vector(3, ti.i32)
+# The conserving projection gives energy back only where that scales a body's deformation
+# velocities up by at most this share: energy the step lost in a mode it cannot follow (a
+# stiff body's unresolved breathing) is not pumped into another
+LIFT = 0.1
+TWO_I32 = ti.types.vector(2, ti.i32)
 
 
 @ti.data_oriented
@@ -77,6 +81,11 @@ class Safeguards:
         self.body_lowest = ti.field(ti.f64, nb)
         self.body_scale = ti.field(ti.f64, nb)
         self.body_elastic = ti.field(ti.f64, nb)
+        self.body_shift = ti.field(ti.f64, nb)
+        self.body_spin_before = ti.Vector.field(3, ti.f64, nb)
+        self.body_fallback = ti.field(ti.i32, nb)
+        self.body_spin_new = ti.Vector.field(3, ti.f64, nb)
+        self.body_shift_vector = ti.Vector.field(3, ti.f64, nb)
         self.forget_band()
 
     def forget_band(self):
@@ -84,15 +93,15 @@ class Safeguards:
         self.body_scale.fill(-1.0)
 
     @ti.kernel
-    def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), x: ti.template(),
-                   v: ti.template(), h: float, dt: float, momentum: ti.template(),
-                   energy: ti.template(), accel: ti.template(), keep: ti.template()) -> THREE_I32:
+    def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), v_n: ti.template(),
+                   x: ti.template(), v: ti.template(), h: float, dt: float, momentum: ti.template(),
+                   energy: ti.template(), accel: ti.template(), keep: ti.template(), conserve: ti.i32) -> TWO_I32:
         """The step's last checks on its iterate x, v, in one launch: returns (vertices not
-        finite, bodies energy-limited, how many of those were sent back to x_n). momentum:
-        `restore_momentum`; energy: the total energy AFTER and `limit_energy` (x_n: the step's start). keep: accel <- the step's
-        acceleration (v - v^) / h, what the forces did, before the energy limit takes any away
-        (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller discards a
-        result that is not finite, whatever these did with it."""
+        finite, bodies trimmed). momentum: `restore_momentum`; energy: the total energy AFTER
+        and `limit_energy` (conserve: to the energy BEFORE, both ways). keep: accel <- the step's
+        acceleration (v - v^) / h, what the forces did, before the energy projection corrects
+        anything (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller
+        discards a result that is not finite, whatever these did with it."""
         bad = self.check_finite(x, v)
         if ti.static(momentum):
             self.restore_momentum(v0, x0, x, v, h)
@@ -100,11 +109,13 @@ class Safeguards:
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(self.model.vertex_count[None]):
                 accel[i] = (v[i] - v0[i]) / h
-        limited = ti.Vector([0, 0], ti.i32)
+        trimmed = 0
         if ti.static(energy):
             self.total_energy(x, v, AFTER, 1)
-            limited = self.limit_energy(x_n, x, v, dt, accel, keep)
-        return ti.Vector([bad, limited[0], limited[1]], ti.i32)
+            trimmed = self.limit_energy(x, v, dt, conserve)
+            if trimmed > 0:
+                self.fall_back(x_n, v_n, x, v, dt)
+        return ti.Vector([bad, trimmed], ti.i32)
 
     @ti.func
     def check_finite(self, x: ti.template(), v: ti.template()):
@@ -150,6 +161,10 @@ class Safeguards:
         self.total_energy(x, v, when, tets)
         if ti.static(when == BEFORE):
             self.start_band()
+            self.rigid_motion(x, v)
+            ti.loop_config(serialize=True)
+            for b in range(self.model.body_count[None]):     # L about the centre: the conserving target
+                self.body_spin_before[b] = self.body_inertia[b] @ self.body_spin[b]
 
     @ti.func
     def start_band(self):
@@ -210,50 +225,106 @@ class Safeguards:
             self.body_total_size[when, self.model.vertex_body[i]] += kinetic + ti.abs(potential)
 
     @ti.func
-    def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt, accel: ti.template(),
-                     keep: ti.template()):
-        """Take each rise out of the body's deformation, or else its motion about its centre
-        (module docstring; x0: the step's start). keep: a body sent back to x0 gets accel <- 0,
-        the step's is not for x0. Returns how many bodies were limited, and how many of them
-        were sent back to x0 (the others keep their positions, so their elastic energies and
-        rotations are still those at x)."""
+    def limit_energy(self, x: ti.template(), v: ti.template(), dt, conserve):
+        """Bring each body's energy to its target by the smallest correction that keeps its
+        momentum (module docstring, "The energy projection"). conserve=1 (the conserving scheme):
+        the target is the energy BEFORE the step, both ways, and an unpinned body's spin is set
+        to the angular momentum it began with, omega' = I^-1 L_n; else only a rise above the band
+        is taken out, to the band's middle, and the spin stays. Then its deformation velocities
+        w = v - v_c - omega x r are scaled by 1 - lam and (with gravity, off the ground) its
+        positions shifted by lam dt^2 g, lam the smaller root of the exact energy change
+        (lam^2 - 2 lam) K_w - lam dt^2 m |g|^2 = -excess. A body whose rise is more than that
+        can take (a failed solve: its deformation and height cannot pay for it) is trimmed:
+        `fall_back`. A uniform shift keeps strains: the rotations and elastic energies at x stand.
+        Returns how many bodies were trimmed."""
         self.rigid_motion(x, v)
-        limited, sent_back = 0, 0
+        trimmed = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             energy, allowance = self.body_total[AFTER, b], self.allowance(b, self.body_total_size[AFTER, b])
-            spin, deformation = ti.cast(1.0, ti.f64), ti.cast(1.0, ti.f64)
-            if energy <= self.body_lowest[b] + allowance:     # a rise within round-off is no rise
-                self.body_lowest[b] = ti.min(self.body_lowest[b], energy)
-            else:                                              # down to the middle of the band
-                rise = energy - self.body_lowest[b] - 0.5 * allowance
-                limited += 1
-                if self.body_deformation[b] > rise:
-                    deformation = ti.sqrt(1.0 - rise / self.body_deformation[b])
-                elif self.body_kinetic[b] > rise:
-                    spin = ti.sqrt(1.0 - rise / self.body_kinetic[b])
-                    deformation = spin
-                else:
-                    spin = -1.0                  # cannot be absorbed: keep x_n, at rest
-                    sent_back += 1
-            self.body_kinetic[b], self.body_deformation[b] = spin, deformation   # reused: the factors
+            omega = self.body_spin[b]
+            self.body_spin_new[b] = omega
+            excess = ti.cast(0.0, ti.f64)
+            if conserve:
+                excess = energy - self.body_total[BEFORE, b]
+                I = self.body_inertia[b]
+                if self.body_pinned[b] == 0 and I.determinant() > 1e-12 * I.trace() ** 3:
+                    spun = I.inverse() @ self.body_spin_before[b]
+                    excess += 0.5 * (spun.dot(I @ spun) - omega.dot(I @ omega))
+                    self.body_spin_new[b] = spun
+            elif energy > self.body_lowest[b] + allowance:     # a rise within round-off is no rise
+                excess = energy - self.body_lowest[b] - 0.5 * allowance
+            K, G = self.body_deformation[b], ti.cast(0.0, ti.f64)
+            if ti.static(self.has_gravity and not self.effects.has_ground):
+                if self.body_pinned[b] == 0:
+                    G = dt * dt * self.body_mass[b] * ti.cast(self.effects.gravity_vector(), ti.f64).norm_sqr()
+            lam = ti.cast(0.0, ti.f64)
+            self.body_fallback[b] = 0
+            if excess > K + G and excess > allowance:
+                self.body_fallback[b] = 1
+                trimmed += 1
+            elif K + G > 0.0 and ti.abs(excess) > allowance:   # round-off is not chased
+                # the smaller root, in the form that does not cancel
+                lam = 2.0 * excess / (2.0 * K + G + ti.sqrt(ti.max((2.0 * K + G) ** 2 - 4.0 * K * excess, 0.0)))
+                if lam < -LIFT:             # energy the step lost comes back only by a small correction
+                    lam = 0.0
+            self.body_total[AFTER, b] = energy + 0.5 * (self.body_spin_new[b].dot(self.body_inertia[b] @ self.body_spin_new[b])
+                                                        - omega.dot(self.body_inertia[b] @ omega)) \
+                + (lam * lam - 2.0 * lam) * K - lam * G
+            if self.body_fallback[b]:
+                self.body_total[AFTER, b] = self.body_total[BEFORE, b]     # at most: `fall_back`
+            self.body_deformation[b] = 1.0 - lam          # reused: the factor
+            self.body_shift[b] = lam * dt * dt * (G > 0.0)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             b = self.model.vertex_body[i]
-            if self.body_kinetic[b] < 0.0:
-                c = ti.Vector.zero(float, 3)       # gravity or the ground may have sped the centre up
-                if ti.static(not (self.has_gravity or self.effects.has_ground)):
-                    c = ti.cast(self.centre_velocity(b), float) * self.model.free[i]
-                x[i], v[i] = x0[i] + dt * c, c
-                if ti.static(keep):
-                    accel[i] = ti.Vector.zero(float, 3)
-            elif self.body_deformation[b] < 1.0:
+            if self.body_deformation[b] != 1.0 or (self.body_spin_new[b] != self.body_spin[b]).any():
                 c = self.centre_velocity(b)
-                turn = self.body_spin[b].cross(ti.cast(x[i], ti.f64) - self.body_centre[b])
-                w = ti.cast(v[i], ti.f64) - c - turn
-                u = c + self.body_kinetic[b] * turn + self.body_deformation[b] * w
+                r = ti.cast(x[i], ti.f64) - self.body_centre[b]
+                w = ti.cast(v[i], ti.f64) - c - self.body_spin[b].cross(r)
+                u = c + self.body_spin_new[b].cross(r) + self.body_deformation[b] * w
                 v[i] = ti.cast(u * self.model.free[i], float)
-        return ti.Vector([limited, sent_back], ti.i32)
+                if ti.static(self.has_gravity and not self.effects.has_ground):
+                    x[i] += ti.cast(self.body_shift[b] * self.model.free[i], float) * self.effects.gravity_vector()
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):       # the band follows the corrected energy
+            self.body_lowest[b] = ti.min(self.body_lowest[b], self.body_total[AFTER, b])
+        return trimmed
+
+    @ti.func
+    def fall_back(self, x_n: ti.template(), v_n: ti.template(), x: ti.template(), v: ti.template(), dt):
+        """A trimmed body takes a rigid step instead: its start shape x_n, turned by its start spin
+        omega_n for dt (Rodrigues) about a centre that moves as the step's momentum says,
+        c_n + dt (v_c,n + v_c,n+1) / 2, with the rigid velocities v_c,n+1 + omega_n x r. Its
+        strains, and so its elastic energy, are those it began with, its spin keeps its kinetic
+        energy, its centre trades kinetic for gravitational energy exactly as the trapezoidal
+        rule does, and only its deformation's kinetic energy goes: the energy cannot rise, and the
+        body goes on moving (a stiff body, nearly rigid, moves as one). Only a failed solve gets
+        here: a capped linear solve, or an integrator that cannot follow that body at this dt."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_spin_new[b] = self.centre_velocity(b)       # v_c,n+1, before rigid_motion(x_n) overwrites it
+        self.rigid_motion(x_n, v_n)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            omega = self.body_spin[b]
+            angle = omega.norm() * dt
+            R = ti.Matrix.identity(ti.f64, 3)
+            if angle > 0.0:
+                k = omega / omega.norm()
+                K = ti.Matrix([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], ti.f64)
+                R += ti.sin(angle) * K + (1.0 - ti.cos(angle)) * K @ K
+            self.body_inertia[b] = R                                  # reused: the turn
+            self.body_shift_vector[b] = 0.5 * dt * (self.centre_velocity(b) + self.body_spin_new[b])
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            b = self.model.vertex_body[i]
+            if self.body_fallback[b] and self.model.free[i] > 0:
+                r = self.body_inertia[b] @ (ti.cast(x_n[i], ti.f64) - self.body_centre[b])
+                x[i] = ti.cast(self.body_centre[b] + self.body_shift_vector[b] + r, float)
+                v[i] = ti.cast(self.body_spin_new[b] + self.body_spin[b].cross(r), float)
+            elif self.body_fallback[b]:
+                x[i], v[i] = x_n[i], ti.Vector.zero(float, 3)
 
     @ti.func
     def rigid_motion(self, x: ti.template(), v: ti.template()):

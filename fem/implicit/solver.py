@@ -116,7 +116,7 @@ class ImplicitSolver:
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
         integrator = chosen(settings.integrator, self.switches.ground)    # "auto": by the scene
-        target = self.history.target(integrator, dt)
+        target = self.history.target(integrator, dt, model.version, settings.rho_infinity)
         h = target.h_per_dt * dt                                        # the integrator's effective step
         cM, cK = p.coefficients(h)
         self.refresh(cM, cK, h, dt)
@@ -135,9 +135,11 @@ class ImplicitSolver:
         self.turn_known = not ended_here                                # the turn of this step, recorded
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
+        if self.history.fresh:                                          # a_n from the forces at x_n, v_n
+            self.start_acceleration(state_in.x, h, dt)
         self.history.apply(target, integrator, p, state_in.x, state_in.v, h)   # x^, v^ (backward Euler: x_n, v_n)
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
-        a_n = self.history.acceleration() if target is TRAPEZOIDAL else None    # a closer guess
+        a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
         if target.from_history:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
@@ -157,20 +159,22 @@ class ImplicitSolver:
         else:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
-        # the safeguards: finite, momentum (where no ground pushes), energy
+        # the safeguards: finite, momentum (where no ground pushes), energy: the conserving scheme
+        # (the trapezoidal rule, undamped, off the ground) is projected onto the energy it began with
         trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
-        accel = self.history.acceleration() if trapezoidal else p.v0
-        bad, limited, sent_back = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground,
-                                                             newton, accel, trapezoidal)
+        accel = self.history.acceleration() if target.one_step else p.v0
+        conserve = int(target == TRAPEZOIDAL and not ground and not self.effects.damped)
+        bad, trimmed = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not ground,
+                                                  newton, accel, target.one_step, conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
-        limited = int(limited) if finite else 0
-        # the rotations and elastic energies the next step can reuse: those of its x_n, unless
-        # a body was sent back to x_n (a limit that only scaled velocities keeps them: the next
-        # step then measures its energy BEFORE with the very sums the limit aimed at)
-        self.end_known = model.version if newton and finite and sent_back == 0 else None
+        trimmed = int(trimmed) if finite else 0
+        # the rotations and elastic energies the next step can reuse: those of its x_n (the
+        # projection scales velocities and shifts bodies whole: strains stay), unless a body
+        # fell back to its start, whose a_n the next step takes from the forces there too
+        self.end_known = model.version if newton and finite and trimmed == 0 else None
         self.finish(state_in.v, state_out.x, state_out.v, int(finite), int(a_n is not None))
-        if finite:
-            self.history.remember(integrator, dt)
+        if finite and trimmed == 0:
+            self.history.remember(integrator, dt, model.version)
         else:
             self.history.forget()
         self.last_dt = dt
@@ -182,8 +186,25 @@ class ImplicitSolver:
         return StepInfo(finite=finite, converged=bool(solved.rho <= 1.0), integrator=target.name,
                         residual=residual if math.isfinite(residual) else None,
                         newton_iters=max(solved.newton_iters, 1), solver_iters=solved.solver_iters,
-                        line_search_steps=solved.halvings, energy_limited=limited, rotation_ms=rotation_ms,
+                        line_search_steps=solved.halvings, energy_limited=trimmed, rotation_ms=rotation_ms,
                         solve_ms=wall_ms - rotation_ms)
+
+    def start_acceleration(self, x_n, h, dt):
+        """The trapezoidal rule's a_n where the history gives none: M a_n = f(x_n) - D v_n + M g
+        (+ the ground's force), the forces at the step's start, from -grad E at v = v^ = v_n with
+        x = x_n (R(x_n) already extracted), where it is h M a_n."""
+        p = self.potential
+        if self.switches.ground:
+            self.effects.start_contacts(x_n, p.x, h, dt)
+        p.gradient(p.v0, p.x, p.v, h, 1.0, False)
+        self.store_acceleration(self.history.acceleration(), h)
+
+    @ti.kernel
+    def store_acceleration(self, accel: ti.template(), h: float):
+        """accel <- -grad E / (h m), filtered (a pinned vertex does not accelerate)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            accel[i] = self.effects.filtered(i, self.potential.rhs[i]) / (h * self.model.mass[i])
 
     # ------------------------------------------------------------ a scene, live edits, memory
 

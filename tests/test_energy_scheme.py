@@ -1,0 +1,123 @@
+"""Energy kept by the integrator, not by trimming (issue 34), checked against analytic answers:
+
+- a body released at rest falls as its integrator's own formula for a constant acceleration
+  says: 1/2 g t^2 for the trapezoidal rule and BDF2 (no backward Euler start), g dt^2 N(N+1)/2
+  for backward Euler; with the ground far below, too;
+- the conserving scheme (the trapezoidal rule, projected onto the energy it began with) keeps
+  a free spinning, twisting body's total energy and angular momentum over 10 s, and trims no
+  step;
+- "converged" is measured at the answer: a converged step's residual, recomputed from the
+  states by an independent numpy sum, is within the tolerance.
+"""
+
+import numpy as np
+import pytest
+
+import fem
+from app.bench.direct import DirectSolver
+from fem.scene import Effects, SolverSettings
+from conftest import make_scene
+from scenes.hard_cases import cube
+from test_step_promises import angular_momentum
+
+G = 9.81
+
+
+def centre_height(sim):
+    m = sim.model.mass.to_numpy()[:sim.model.n_vertices].astype(np.float64)
+    return float((m * sim.positions()[:, 1]).sum() / m.sum())
+
+
+def fall(E, integrator, step, ground=None, dt=0.02, steps=25):
+    """How far a 1.2 m bar released at rest falls in `steps` steps (m), and the steps trimmed."""
+    effects = Effects(gravity=(0.0, -G, 0.0), ground=ground)
+    scene = make_scene(cube(cells=3, size=(1.2, 0.2, 0.2)), E=E, effects=effects,
+                       solver=SolverSettings(dt=dt, integrator=integrator, step=step), position=(0, 3.0, 0))
+    sim = fem.Simulation(scene)
+    start, trimmed = centre_height(sim), 0
+    for _ in range(steps):
+        info = sim.step()
+        trimmed += info["energy_limited"]
+        assert not any(sim.asleep), "a falling body never sleeps"
+    return start - centre_height(sim), trimmed
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_a_released_body_falls_as_its_integrator_says(precision):
+    fem.init("cpu", precision)
+    dt, n = 0.02, 25
+    exact = {"auto": 0.5 * G * (n * dt) ** 2, "bdf2": 0.5 * G * (n * dt) ** 2,
+             "backward-euler": G * dt * dt * n * (n + 1) / 2}
+    for E in (1e3, 1e7, 1e11):
+        for integrator, step in (("auto", "newton"), ("auto", "single"), ("bdf2", "newton"),
+                                 ("backward-euler", "newton")):
+            for ground in (None, -10.0):
+                fallen, trimmed = fall(E, integrator, step, ground)
+                case = (precision, E, integrator, step, ground, fallen, exact[integrator])
+                assert abs(fallen - exact[integrator]) <= 1e-3 * exact[integrator], case
+                assert trimmed == 0, case
+
+
+def twisting_bar(dt, tolerance=1e-8):
+    """The spinning, twisting bar of app/bench/order.py, undamped, trapezoidal, float64."""
+    from app.bench.order import twisting_state
+    scene, x, v = twisting_state(dt, "trapezoidal", tolerance)
+    sim = fem.Simulation(scene)
+    sim.set_state(x, v)
+    return sim
+
+
+def test_the_conserving_scheme_keeps_energy_and_angular_momentum_over_ten_seconds(f64):
+    sim = twisting_bar(0.02)
+    E0, L0 = sim.stats()["total_energy"], angular_momentum(sim)
+    trimmed, energies = 0, []
+    for _ in range(500):
+        info = sim.step()
+        trimmed += info["energy_limited"]
+        energies.append(sim.stats()["total_energy"])
+    L = angular_momentum(sim)
+    assert trimmed == 0
+    assert max(abs(e - E0) for e in energies) <= 1e-6 * E0, (E0, min(energies), max(energies))
+    assert np.linalg.norm(L - L0) <= 1e-6 * np.linalg.norm(L0), (L0, L)
+
+
+def forces(sim, reference):
+    """The elastic forces at sim's positions (n, 3, N), from the assembled numpy model
+    (app/bench/direct.py: its own polar rotations and element matrices)."""
+    reference.x = sim.positions()
+    return reference.elastic_forces(reference.rotations())
+
+
+def residual_at(sim, reference, x_n, v_n, a_n, dt):
+    """The trapezoidal step's residual, from the states alone (numpy): |M (v - v_n) - dt/2 M (a_n
+    + a)|, a = M^-1 f(x) from the engine's forces at the end state (v = 0 strain rate: undamped),
+    against the step's physical scale |M v| + |dt M a|."""
+    n = sim.model.n_vertices
+    m = sim.model.mass.to_numpy()[:n].astype(np.float64)[:, None]
+    x, v = sim.positions(), sim.velocities()
+    f = forces(sim, reference)
+    a = f / m
+    r = m * (v - v_n) - 0.5 * dt * m * (a_n + a)
+    scale = np.sqrt((m * m * v * v).sum() + dt * dt * (f * f).sum())
+    return np.linalg.norm(r) / scale, a
+
+
+@pytest.mark.parametrize("E, nu", [(1e5, 0.3), (1e8, 0.3), (1e5, 0.499)])
+def test_converged_means_within_the_tolerance_at_the_answer(f64, E, nu):
+    """Steps of the trapezoidal rule that report `converged` have a residual, recomputed from
+    the states with the forces at the answer, within a small multiple of the tolerance (the
+    engine's per-body norm weighs the same terms)."""
+    tolerance, dt = 1e-4, 0.02
+    scene = make_scene(cube(cells=3), E=E, nu=nu, solver=SolverSettings(dt=dt, tolerance=tolerance))
+    sim = fem.Simulation(scene)
+    x = sim.positions()
+    sim.set_state(x, np.cross([0.0, 3.0, 0.0], x - x.mean(0)) + 0.3 * np.cross([1.0, 0.0, 0.0], x) * x[:, :1])
+    reference = DirectSolver(sim)
+    m = sim.model.mass.to_numpy()[:sim.model.n_vertices].astype(np.float64)[:, None]
+    a_n = forces(sim, reference) / m
+    for _ in range(10):
+        x_n, v_n = sim.positions(), sim.velocities()
+        info = sim.step()
+        relative, a_n = residual_at(sim, reference, x_n, v_n, a_n, dt)
+        if info["converged"]:
+            assert relative <= 3 * tolerance, (E, nu, relative, info["residual"])
