@@ -133,9 +133,10 @@ def add_scene_options(p, scene_required=True):
                         "single: one linear solve per step, rotations frozen (cheaper, can gain energy)")
     p.add_argument("--integrator", choices=INTEGRATOR_CHOICES,
                    help="auto (default): trapezoidal, or bdf2 in a scene with a ground; trapezoidal: second "
-                        "order, damps nothing, the most accurate; bdf2: second order, damps the fastest modes "
-                        "(the ground's stiff contact); backward-euler: first order, damps fast motion (the "
-                        "first step of the others, and each one after an impulse, is backward Euler's)")
+                        "order, keeps energy and angular momentum (projected onto them), the most accurate; "
+                        "bdf2: second order, damps the fastest modes (the ground's stiff contact); "
+                        "backward-euler: first order, damps fast motion. --set solver.rho_infinity=R (0..1) "
+                        "gives the trapezoidal rule numerical dissipation of the modes dt cannot follow")
     p.add_argument("--dt", type=POSITIVE, help="time step, s")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene value, e.g. --set body.soft.mesh.cells=[8,8,8]; "

@@ -32,11 +32,10 @@ def test_momentum_is_conserved_without_effects(f64, method):
     scale = np.abs(sim.model.mass_np).sum() * 4.0
     np.testing.assert_allclose(momentum(sim), p0, atol=1e-9 * scale)
     if method == "corotational":
-        # backward Euler does not conserve angular momentum: L' - L = -dt^2 sum v' x f(x'); it
-        # only loses some (here ~4 % in 30 steps; the one-solve step's linearisation ~1 %)
+        # the default step, the conserving scheme, is projected onto the angular momentum it began
+        # with (backward Euler does not conserve it: it only loses some, ~4 % in 30 steps)
         L = angular_momentum(sim)
-        assert np.linalg.norm(L) <= np.linalg.norm(L0)
-        np.testing.assert_allclose(L, L0, atol=0.05 * np.linalg.norm(L0))
+        np.testing.assert_allclose(L, L0, atol=1e-12 * np.linalg.norm(L0))
 
 
 @pytest.mark.parametrize("method", ["linear", "corotational"])
@@ -103,7 +102,7 @@ def limited(rise_share):
     p.v.from_numpy(pad(v))
     guard.body_total[0, 0] = before
     guard.body_lowest[0] = before                                 # the lowest it has had: BEFORE
-    guard.after_step(p.v0, p.x0, p.x, p.x, p.v, 0.02, 0.02, False, True, p.v0, False)
+    guard.after_step(p.v0, p.x0, sim.state.x, sim.state.v, p.x, p.v, 0.02, 0.02, False, True, p.v0, False, 0)
     limited_v = p.v.to_numpy()[:n].astype(np.float64)
     sim.set_state(x, limited_v)               # what the limit left: the energy BEFORE (+ 15 eps), the same momentum
     assert sim.stats()["total_energy"] == pytest.approx(before, rel=1e-12)
@@ -117,12 +116,49 @@ def test_the_energy_limit_takes_a_rise_out_of_the_deformation_and_keeps_the_spin
     np.testing.assert_allclose(limited_v, v - (1 - np.sqrt(0.5)) * wobble, atol=1e-12)   # the wobble scaled
 
 
-def test_a_rise_beyond_the_deformation_slows_the_motion_about_the_centre(f64):
-    m, x, v, _, limited_v = limited(1.5)
-    c = (m * v).sum(0) / m.sum()
-    scale = (limited_v - c) / (v - c)
-    np.testing.assert_allclose(scale, scale[0, 0], rtol=1e-9)   # every relative velocity by one factor
-    assert 0 < scale[0, 0] < 1
+def test_a_rise_nothing_can_pay_for_takes_a_rigid_step_and_the_body_moves_on(f64):
+    """A step whose end (here: every relative velocity 1.3 times the start's) has more energy than
+    its deformation can give back is trimmed: the body takes a rigid step from its start instead
+    (Safeguards.fall_back), never back to rest. Checked against numpy: its shape is the start's
+    turned by omega_n dt (Rodrigues) about a centre moved by dt (v_c,n + v_c,n+1) / 2, its
+    velocities the rigid ones, its energy the start's less the start's deformation kinetic
+    energy, its momentum the step's."""
+    dt = 0.02
+    sim = fem.Simulation(make_scene(box_mesh(3), "corotational", E=1e4, nu=0.3))
+    n, cap = sim.model.n_vertices, sim.model.capacity.vertices
+    m = sim.model.mass_np[:, None]
+    rng = np.random.default_rng(11)
+    x = sim.positions()
+    c = (m * x).sum(0) / m.sum()
+    r = x - c
+    wobble = 0.2 * rng.standard_normal(x.shape)
+    wobble -= (m * wobble).sum(0) / m.sum()
+    inertia = (m[:, :, None] * ((r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])).sum(0)
+    wobble -= np.cross(np.linalg.solve(inertia, (m * np.cross(r, wobble)).sum(0)), r)   # no L in it
+    omega, v_c = np.array([0.0, 3.0, 0.0]), np.array([0.5, 0.0, 0.0])
+    v = v_c + np.cross(omega, r) + wobble
+    sim.set_state(x, v)                                          # the start: state.x, state.v
+    before = sim.stats()["total_energy"]
+    v_end = v_c + 1.3 * (v - v_c) + [0.0, 0.1, 0.0]             # more energy than its wobble holds
+    p, guard = sim.solver.potential, sim.solver.safeguards
+    pad = lambda a: np.vstack([a, np.zeros((cap - n, 3))])        # noqa: E731
+    p.x.from_numpy(pad(x))
+    p.v.from_numpy(pad(v_end))
+    guard.body_energy(sim.state.x, sim.state.v, 0, 1)             # BEFORE: the start's energy and L
+    _, trimmed, rigid = guard.after_step(p.v0, p.x0, sim.state.x, sim.state.v, p.x, p.v, dt, dt, False, True,
+                                         p.v0, False, 0)
+    assert (trimmed, rigid) == (1, 1)
+    angle = 3.0 * dt
+    turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    v_c_end = v_c + [0.0, 0.1, 0.0]
+    expected_x = c + dt * (v_c + v_c_end) / 2 + r @ turn.T
+    x_after, v_after = p.x.to_numpy()[:n].astype(np.float64), p.v.to_numpy()[:n].astype(np.float64)
+    np.testing.assert_allclose(x_after, expected_x, atol=1e-12)
+    np.testing.assert_allclose(v_after, v_c_end + np.cross(omega, r @ turn.T), atol=1e-12)
+    sim.set_state(x_after, v_after)
+    wobble_energy = 0.5 * (m * wobble ** 2).sum()
+    momentum_gain = 0.5 * m.sum() * (v_c_end @ v_c_end - v_c @ v_c)
+    assert sim.stats()["total_energy"] == pytest.approx(before - wobble_energy + momentum_gain, rel=1e-12)
 
 
 def test_a_body_near_rest_wanders_within_round_off_of_its_history_and_never_climbs(f32):
@@ -145,7 +181,6 @@ def test_a_body_near_rest_wanders_within_round_off_of_its_history_and_never_clim
     assert limited_steps == 0
     assert energies[-1, 1] < 1e-5 * energies[0, 1]                 # the stiff cube is nearly at rest
     assert np.all(energies - lowest <= ROUNDOFF * epsilon() * energies[0])
-    assert np.diff(energies[:, 1]).max() > 0                        # and it does wander up
 
 
 def test_a_rise_beyond_the_band_is_taken_down_to_its_middle(f64):
@@ -168,7 +203,8 @@ def test_a_rise_beyond_the_band_is_taken_down_to_its_middle(f64):
         guard.body_total[0, 0] = after - 0.5 * band              # BEFORE: within the band
         guard.body_lowest[0] = after - above * band
         guard.body_scale[0] = -1.0
-        _, limits, _ = guard.after_step(p.v0, p.x0, p.x, p.x, p.v, 0.02, 0.02, False, True, p.v0, False)
+        _, limits, _ = guard.after_step(p.v0, p.x0, sim.state.x, sim.state.v, p.x, p.v, 0.02, 0.02, False, True,
+                                        p.v0, False, 0)
         sim.set_state(sim.positions(), p.v.to_numpy()[:n].astype(np.float64))
         ends[above] = (limits, sim.stats()["total_energy"] - (after - above * band))
     assert ends[0.9] == (0, pytest.approx(0.9 * band, rel=1e-2))       # within the band: left alone

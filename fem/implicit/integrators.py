@@ -15,9 +15,10 @@ order with a smaller error (about a third of BDF2's on a spinning body) and damp
 x_(n+1) = x_n + dt (v_n + v_(n+1)) / 2, v_(n+1) = v_n + dt (a_n + a_(n+1)) / 2, where a_n,
 the acceleration at the end of the last step (every force: elastic, gravity, damping,
 contact), is read off that step's own update, a_n = (v_n - v^) / h, before the energy
-safeguard (fem/implicit/safeguards.py) scales anything back: the next step goes on from the
-state the safeguard left with the forces that act there. Nothing damps its fastest modes,
-so on a non-convex energy it leans on that safeguard more than BDF2.
+projection (fem/implicit/safeguards.py) corrects anything. On the non-convex corotated energy it
+keeps neither energy nor angular momentum by itself; undamped and off the ground, that
+projection puts each body back on both every step: the conserving scheme. `theta_rule(rho)`
+generalises it with numerical dissipation (SolverSettings.rho_infinity).
 
 The trapezoidal rule is a one-step scheme: after anything that breaks the history (the first
 step, an impulse, a new state, a live edit, a change of dt or of integrator, a rejected step)

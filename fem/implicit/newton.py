@@ -50,12 +50,6 @@ from fem.runtime import epsilon
 ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
 MAX_HALVINGS = 12        # line search: a >= 2^-12
 FORCING = 0.1            # inexact Newton from v = 0: CG reduces the gradient by this factor (at least)
-# From the guess, the first direction is solved to rho 0.5 (a residual 0.7 times the tolerance), so
-# that what E's nonlinearity adds fits under the tolerance more often: a second Newton iteration (a
-# PCG solve, a rotation pass, an energy pass) costs more than the PCG iteration or so this adds.
-# Trapezoidal rule at dt 0.02 s, Newton iterations a step: epcot 1.62 -> 1.41, box1k 1.24 -> 1.12,
-# fertility 1.26 -> 1.16; cube's energy-limited steps 57 -> 38 of 100
-FIRST_TARGET = 0.5
 FIRST_BLEND = 0.5        # a body's first blend of the Adams-Bashforth guess: v_n + dt a_n
 TWO_F64 = ti.types.vector(2, ti.f64)
 
@@ -111,13 +105,11 @@ class Newton:
         # tolerance at once, and off the ground one iteration is the answer. From the guess, what
         # is left of E's nonlinearity after one iteration is small, and an inexact direction would
         # cost a second iteration (BDF2 on epcot: 2.55 iterations a step with FORCING, 2.05
-        # without, 10.0 -> 8.7 ms); the first goes a little below the tolerance (FIRST_TARGET)
+        # without, 10.0 -> 8.7 ms)
         quadratic = frozen or not self.model.any_corotational
         while out.rho > 1.0 and out.newton_iters < settings.max_newton:
-            if quadratic:
+            if quadratic or self.from_guess:
                 target = 1.0
-            elif self.from_guess:       # room under the tolerance for what one iteration leaves
-                target = FIRST_TARGET if out.newton_iters == 0 else 1.0
             else:
                 target = max(1.0, FORCING ** 2 * out.rho)
             out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,

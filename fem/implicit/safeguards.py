@@ -3,44 +3,42 @@
 - `check_finite`: a step whose result is not finite is rejected (the caller keeps its state).
 - `restore_momentum`: an inexact solve leaves a residual whose sum is not zero, and internal
   forces can never change momentum: each unpinned body's velocity is shifted uniformly so
-  that its momentum is exactly the integrator's (scenes without ground contact).
-- `limit_energy`: backward Euler with a non-convex energy (corotated elasticity is not
-  convex: a compressed tet's twist curvature is negative) can end a step with more energy
-  than it began, even when solved exactly: thin, bending or buckling bodies do. The promise
-  that total energy never rises is kept by a last safeguard: a body whose kinetic + elastic
-  + gravitational energy rose has the velocities of its deformation (what is left of v once
-  its centre's velocity and its rigid spin omega x r are taken out) scaled down by just
-  enough, so that positions, momentum and angular momentum are untouched: a spinning body
-  keeps its spin. Where its deformation holds less kinetic energy than the rise, its
-  velocities relative to its centre of mass are scaled instead; a body whose rise is more
-  than that motion holds (nearly at rest) keeps its old positions, at rest. A pinned body
-  has no free centre or spin: its velocities are scaled. StepInfo counts all of these.
-  A rise within round-off is no rise, and round-off is measured against the body's own
-  history, not its current energy: a body's energy may wander up to ROUNDOFF eps of the
-  largest size its energy's terms have had since the last change from outside (`start_band`)
-  above the lowest energy it has had since then, and no further, so it can never climb, even
-  by many small rises. (Measured against its current energy instead, a stiff body nearly at
-  rest had every rise of its inexact, f32 solve of 1e-9 of its starting energy trimmed: a
-  ratchet that took half the accuracy of the trapezoidal rule on the cube scene.) A limited
-  body ends in the middle of that band, clear of the velocities' round-off.
+  that its momentum is exactly the integrator's (bodies the ground does not touch).
+- `limit_energy`, the energy projection (docs/method.md, section 6): each body is brought onto
+  its energy target by the smallest correction that keeps its momentum: its deformation
+  velocities (what is left of v once its centre's velocity and rigid spin omega x r are taken
+  out) scaled, and with gravity off the ground a uniform shift along g. For the conserving
+  scheme (the undamped trapezoidal rule off the ground) the target is the energy the body
+  began with, both ways, and its spin is reset to the angular momentum it began with; for
+  every other Newton step only a rise is taken out. A rise within round-off is no rise, and
+  round-off is measured against the body's own history (`start_band`): its energy may wander
+  up to ROUNDOFF eps of the largest size its terms have had since the last change from
+  outside above the lowest energy it has had since then, and no further.
+- `fall_back`: a rise the projection cannot pay for (a failed solve) is trimmed: the body takes
+  a rigid step from its start instead, and goes on moving. StepInfo counts these trims.
 
 Fields (bodies of the capacity; energies summed in float64):
     body_total (2, bodies)       each body's total energy [BEFORE, AFTER] the step, J
     body_total_size (2, bodies)  the sum of the sizes of its terms, J: the scale of its round-off
     body_mass (bodies,)          kg (free vertices only, for the energy limit)
     body_momentum_vector (bodies, 3)   kg m/s
-    body_kinetic (bodies,)       J: kinetic energy relative to the centre of mass, then the
-                                 factor its spin is scaled by (-1: the body goes back to x_n)
+    body_kinetic (bodies,)       J: kinetic energy relative to the centre of mass
     body_deformation (bodies,)   J: the kinetic energy of its deformation, then the factor
-                                 the deformation's velocities are scaled by
+                                 the deformation's velocities are scaled by (1 - lam)
     body_centre (bodies, 3)      m: its centre of mass
     body_spin (bodies, 3)        its angular momentum about the centre (kg m^2/s), then omega (1/s)
-    body_inertia (bodies, 3x3)   its inertia tensor about the centre, kg m^2
+    body_inertia (bodies, 3x3)   its inertia tensor about the centre, kg m^2 (a rigid step: its turn)
     body_pinned (bodies,)        1: the body has pinned vertices
     body_lowest (bodies,)        J: the lowest total energy it has had since the band started
     body_scale (bodies,)         J: the largest sum of its terms' sizes since then (-1: no band yet)
     body_elastic (bodies,)       its elastic energy when last summed, J: a step that starts where
                                  the last one ended (the same positions and rotations) reuses it
+    body_shift (bodies,)         s^2: the projection's shift along g is body_shift g (m)
+    body_spin_before (bodies, 3) its angular momentum about its centre BEFORE the step, kg m^2/s
+    body_spin_new (bodies, 3)    1/s: the spin it ends with (the conserving scheme: I^-1 L_n)
+    body_shift_vector (bodies, 3)  m: a rigid step's move of the centre
+    body_fallback (bodies,)      1: trimmed this step (`fall_back`)
+    body_touching (bodies,)      1: pressed into the ground at the step's start or end (`find_contacts`)
 """
 
 import taichi as ti
@@ -55,7 +53,7 @@ BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
 # velocities up by at most this share: energy the step lost in a mode it cannot follow (a
 # stiff body's unresolved breathing) is not pumped into another
 LIFT = 0.1
-TWO_I32 = ti.types.vector(2, ti.i32)
+THREE_I32 = ti.types.vector(3, ti.i32)
 
 
 @ti.data_oriented
@@ -84,6 +82,7 @@ class Safeguards:
         self.body_shift = ti.field(ti.f64, nb)
         self.body_spin_before = ti.Vector.field(3, ti.f64, nb)
         self.body_fallback = ti.field(ti.i32, nb)
+        self.body_touching = ti.field(ti.i32, nb)
         self.body_spin_new = ti.Vector.field(3, ti.f64, nb)
         self.body_shift_vector = ti.Vector.field(3, ti.f64, nb)
         self.forget_band()
@@ -95,27 +94,28 @@ class Safeguards:
     @ti.kernel
     def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), v_n: ti.template(),
                    x: ti.template(), v: ti.template(), h: float, dt: float, momentum: ti.template(),
-                   energy: ti.template(), accel: ti.template(), keep: ti.template(), conserve: ti.i32) -> TWO_I32:
+                   energy: ti.template(), accel: ti.template(), keep: ti.template(), conserve: ti.i32) -> THREE_I32:
         """The step's last checks on its iterate x, v, in one launch: returns (vertices not
-        finite, bodies trimmed). momentum: `restore_momentum`; energy: the total energy AFTER
+        finite, bodies trimmed, bodies that took a rigid step: the same). momentum: `restore_momentum`; energy: the total energy AFTER
         and `limit_energy` (conserve: to the energy BEFORE, both ways). keep: accel <- the step's
         acceleration (v - v^) / h, what the forces did, before the energy projection corrects
         anything (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller
         discards a result that is not finite, whatever these did with it."""
         bad = self.check_finite(x, v)
+        self.find_contacts(x_n, x)
         if ti.static(momentum):
             self.restore_momentum(v0, x0, x, v, h)
         if ti.static(keep):
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(self.model.vertex_count[None]):
                 accel[i] = (v[i] - v0[i]) / h
-        trimmed = 0
+        counts = ti.Vector([0, 0], ti.i32)
         if ti.static(energy):
             self.total_energy(x, v, AFTER, 1)
-            trimmed = self.limit_energy(x, v, dt, conserve)
-            if trimmed > 0:
+            counts = self.limit_energy(x, v, dt, conserve)
+            if counts[1] > 0:
                 self.fall_back(x_n, v_n, x, v, dt)
-        return ti.Vector([bad, trimmed], ti.i32)
+        return ti.Vector([bad, counts[0], counts[1]], ti.i32)
 
     @ti.func
     def check_finite(self, x: ti.template(), v: ti.template()):
@@ -126,6 +126,20 @@ class Safeguards:
             if not is_finite(x[i].sum() + v[i].sum()):
                 bad += 1
         return bad
+
+    @ti.func
+    def find_contacts(self, x_n: ti.template(), x: ti.template()):
+        """body_touching[b] <- 1 where some vertex of body b is pressed into the ground at the
+        step's start or end: the ground may have pushed it, so its momentum is not internal
+        forces' and gravity's alone. (No ground: every body is free.)"""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_touching[b] = 0
+        if ti.static(self.effects.has_ground):
+            ti.loop_config(serialize=self.serial_vertices)
+            for i in range(self.model.vertex_count[None]):
+                if self.effects.pressed(x_n[i]) or self.effects.pressed(x[i]):
+                    self.body_touching[self.model.vertex_body[i]] = 1
 
     @ti.func
     def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(), dt):
@@ -149,7 +163,7 @@ class Safeguards:
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             b = self.model.vertex_body[i]
-            if self.body_pinned[b] == 0 and self.body_mass[b] > 0 and self.sleep.awake[b]:
+            if self.body_pinned[b] == 0 and self.body_touching[b] == 0 and self.body_mass[b] > 0 and self.sleep.awake[b]:
                 u = ti.cast(self.body_momentum_vector[b] / self.body_mass[b], float)
                 v[i] += u
                 x[i] = x0[i] + dt * v[i]
@@ -236,9 +250,10 @@ class Safeguards:
         (lam^2 - 2 lam) K_w - lam dt^2 m |g|^2 = -excess. A body whose rise is more than that
         can take (a failed solve: its deformation and height cannot pay for it) is trimmed:
         `fall_back`. A uniform shift keeps strains: the rotations and elastic energies at x stand.
-        Returns how many bodies were trimmed."""
+        Returns (bodies trimmed, bodies to `fall_back`): the same count, the projection itself is
+        part of the scheme and is not counted."""
         self.rigid_motion(x, v)
-        trimmed = 0
+        trimmed, falls = 0, 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             energy, allowance = self.body_total[AFTER, b], self.allowance(b, self.body_total_size[AFTER, b])
@@ -248,21 +263,23 @@ class Safeguards:
             if conserve:
                 excess = energy - self.body_total[BEFORE, b]
                 I = self.body_inertia[b]
-                if self.body_pinned[b] == 0 and I.determinant() > 1e-12 * I.trace() ** 3:
+                # linear FEM's forces turn a body (they are not rotation invariant): no invariant L there
+                if self.body_pinned[b] == 0 and self.model.body_method[b] != 0 and I.determinant() > 1e-12 * I.trace() ** 3:
                     spun = I.inverse() @ self.body_spin_before[b]
                     excess += 0.5 * (spun.dot(I @ spun) - omega.dot(I @ omega))
                     self.body_spin_new[b] = spun
             elif energy > self.body_lowest[b] + allowance:     # a rise within round-off is no rise
                 excess = energy - self.body_lowest[b] - 0.5 * allowance
             K, G = self.body_deformation[b], ti.cast(0.0, ti.f64)
-            if ti.static(self.has_gravity and not self.effects.has_ground):
-                if self.body_pinned[b] == 0:
+            if ti.static(self.has_gravity):
+                if self.body_pinned[b] == 0 and self.body_touching[b] == 0:
                     G = dt * dt * self.body_mass[b] * ti.cast(self.effects.gravity_vector(), ti.f64).norm_sqr()
             lam = ti.cast(0.0, ti.f64)
             self.body_fallback[b] = 0
             if excess > K + G and excess > allowance:
                 self.body_fallback[b] = 1
                 trimmed += 1
+                falls += 1
             elif K + G > 0.0 and ti.abs(excess) > allowance:   # round-off is not chased
                 # the smaller root, in the form that does not cancel
                 lam = 2.0 * excess / (2.0 * K + G + ti.sqrt(ti.max((2.0 * K + G) ** 2 - 4.0 * K * excess, 0.0)))
@@ -284,12 +301,12 @@ class Safeguards:
                 w = ti.cast(v[i], ti.f64) - c - self.body_spin[b].cross(r)
                 u = c + self.body_spin_new[b].cross(r) + self.body_deformation[b] * w
                 v[i] = ti.cast(u * self.model.free[i], float)
-                if ti.static(self.has_gravity and not self.effects.has_ground):
+                if ti.static(self.has_gravity):
                     x[i] += ti.cast(self.body_shift[b] * self.model.free[i], float) * self.effects.gravity_vector()
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):       # the band follows the corrected energy
             self.body_lowest[b] = ti.min(self.body_lowest[b], self.body_total[AFTER, b])
-        return trimmed
+        return ti.Vector([trimmed, falls], ti.i32)
 
     @ti.func
     def fall_back(self, x_n: ti.template(), v_n: ti.template(), x: ti.template(), v: ti.template(), dt):
@@ -300,7 +317,8 @@ class Safeguards:
         energy, its centre trades kinetic for gravitational energy exactly as the trapezoidal
         rule does, and only its deformation's kinetic energy goes: the energy cannot rise, and the
         body goes on moving (a stiff body, nearly rigid, moves as one). Only a failed solve gets
-        here: a capped linear solve, or an integrator that cannot follow that body at this dt."""
+        here: a capped linear solve, or an integrator that cannot follow that body at this dt. A
+        linear body, whose energy a turn would strain, only translates, with its centre's velocity."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_spin_new[b] = self.centre_velocity(b)       # v_c,n+1, before rigid_motion(x_n) overwrites it
@@ -310,7 +328,9 @@ class Safeguards:
             omega = self.body_spin[b]
             angle = omega.norm() * dt
             R = ti.Matrix.identity(ti.f64, 3)
-            if angle > 0.0:
+            if self.model.body_method[b] == 0:    # a turned linear body is strained: it only translates
+                self.body_spin[b] = ti.Vector.zero(ti.f64, 3)
+            elif angle > 0.0:
                 k = omega / omega.norm()
                 K = ti.Matrix([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], ti.f64)
                 R += ti.sin(angle) * K + (1.0 - ti.cos(angle)) * K @ K

@@ -38,8 +38,10 @@ class StepInfo:
     newton_iters: Newton iterations (1 for a single step).
     solver_iters: CG or Jacobi iterations summed over the Newton iterations.
     line_search_steps: step halvings summed over the Newton iterations.
-    energy_limited: bodies whose total energy the step would have raised, so that their
-        velocities relative to their centre of mass were scaled back to the energy they had.
+    energy_limited: bodies trimmed: a rise the energy projection could not pay for, where the
+        body took a rigid step instead (fem/implicit/safeguards.py). The projection itself (onto
+        the energy and angular momentum of the conserving scheme; a rise taken out of any other
+        Newton step) is part of the scheme and is not counted.
     rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
     """
 
@@ -159,21 +161,21 @@ class ImplicitSolver:
         else:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
-        # the safeguards: finite, momentum (where no ground pushes), energy: the conserving scheme
+        # the safeguards: finite, momentum (of bodies no ground pushes), energy: the conserving scheme
         # (the trapezoidal rule, undamped, off the ground) is projected onto the energy it began with
         trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
         accel = self.history.acceleration() if target.one_step else p.v0
         conserve = int(target == TRAPEZOIDAL and not ground and not self.effects.damped)
-        bad, trimmed = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not ground,
-                                                  newton, accel, target.one_step, conserve)
+        bad, trimmed, rigid = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, True,
+                                                         newton, accel, target.one_step, conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
         trimmed = int(trimmed) if finite else 0
         # the rotations and elastic energies the next step can reuse: those of its x_n (the
         # projection scales velocities and shifts bodies whole: strains stay), unless a body
         # fell back to its start, whose a_n the next step takes from the forces there too
-        self.end_known = model.version if newton and finite and trimmed == 0 else None
+        self.end_known = model.version if newton and finite and rigid == 0 else None
         self.finish(state_in.v, state_out.x, state_out.v, int(finite), int(a_n is not None))
-        if finite and trimmed == 0:
+        if finite and rigid == 0:
             self.history.remember(integrator, dt, model.version)
         else:
             self.history.forget()
