@@ -2,9 +2,10 @@
 
 - A special file (a device such as /dev/null, a FIFO) given as an output is written to
   as a stream, like `-`, and never replaced by a regular file.
-- Temporary files carry the writing process's id (`.NAME.PID.xxxx.part`), so two runs
-  never share one, and a later run can tell the leftovers of a killed run (SIGKILL: no
-  clean-up) from those of a run still going, and remove them.
+- Temporary files carry this program's marker and the writing process's id
+  (`.NAME.PID.xxxx.softfem-part`), so two runs never share one, and a later run can tell the
+  leftovers of a killed run (SIGKILL: no clean-up) from those of a run still going, and
+  remove them; a user's own file of a similar name (`.notes.2023.part`) is never touched.
 - Without --overwrite a finished file is put in place only if nothing took its name in
   the meantime (a hard link cannot replace a file, a rename can): a run never claims a
   file another run wrote.
@@ -25,8 +26,14 @@ from fem.errors import FemError
 # What writing a file can fail with, whatever is written: a full disk, a quota, a file
 # too large for the file system, an I/O error, a file system gone read-only.
 WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS)
-# .NAME.PID.part, .NAME.PID.xxxxxxxx.part or .STEM.PID.part.SUFFIX: app.files' temporary names.
-TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)(\.[A-Za-z0-9_]+)?\.part(\.\w+)?")
+# Every temporary name of this program ends in this marker (and maybe the output's suffix).
+MARKER = "softfem-part"
+# .NAME.PID.xxxxxxxx.softfem-part or .NAME.PID.softfem-part.SUFFIX: app.files' temporary
+# names. A process id has at most 7 digits (Linux's pid_max is at most 2**22).
+TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>[1-9]\d{0,6})(\.\w+)?\." + MARKER + r"(\.\w+)?")
+# Bytes of the output's name kept in a temporary name: with the rest it stays within the
+# 255 bytes a file name may have, however long a valid output name is.
+NAME_BYTES = 160
 
 
 def is_special(path) -> bool:
@@ -39,9 +46,14 @@ def is_special(path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
+def temporary_stem(name: str) -> str:
+    """An output's name as its temporary names carry it: at most NAME_BYTES bytes of it."""
+    return name.encode()[:NAME_BYTES].decode(errors="ignore")
+
+
 def temporary_prefix(path: Path) -> str:
     """The start of this process's temporary names for `path`: '.NAME.PID.'"""
-    return f".{path.name}.{os.getpid()}."
+    return f".{temporary_stem(path.name)}.{os.getpid()}."
 
 
 def process_alive(pid: int) -> bool:
@@ -63,7 +75,8 @@ def stale_temporaries(folder, name=None):
     stale = []
     for path in entries:
         match = TEMPORARY.fullmatch(path.name)
-        if match and (name is None or match["name"] == name) and not process_alive(int(match["pid"])):
+        if match and (name is None or match["name"] == temporary_stem(name)) \
+                and not process_alive(int(match["pid"])):
             stale.append(path)
     return stale
 
@@ -90,8 +103,18 @@ def holds_user_files(folder) -> bool:
 def put_in_place(temporary, path, overwrite: bool):
     """Rename the finished `temporary` to `path`. Without overwrite, a file that appeared at
     `path` while this run was writing (another run) is kept, and this run's output goes to
-    the first free numbered name beside it, which the FemError names."""
+    the first free numbered name beside it, which the FemError names. A folder removed
+    during the run (rm -r out/) is a FemError too: what was in it is gone."""
     temporary, path = Path(temporary), Path(path)
+    try:
+        placed_at(temporary, path, overwrite)
+    except FileNotFoundError:
+        raise FemError(f"{path}: its folder was removed while this run wrote into it; "
+                       "this output went with it") from None
+
+
+def placed_at(temporary: Path, path: Path, overwrite: bool):
+    """put_in_place's renaming: never over another run's file without overwrite."""
     if overwrite:
         os.replace(temporary, path)
         return
@@ -101,6 +124,8 @@ def put_in_place(temporary, path, overwrite: bool):
         return
     except FileExistsError:
         pass
+    except FileNotFoundError:
+        raise
     except OSError:                           # no hard links here (e.g. FAT): check, then rename
         if not os.path.lexists(path):
             os.replace(temporary, path)
