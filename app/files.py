@@ -83,8 +83,11 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise FemError(f"{path.parent}: cannot create folder: {e.strerror}") from None
-    fd, tmp = tempfile.mkstemp(prefix=outputs.temporary_prefix(path), suffix=f".{outputs.MARKER}",
-                                dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=outputs.temporary_prefix(path), suffix=f".{outputs.MARKER}",
+                                    dir=path.parent)
+    except FileNotFoundError:             # the folder (or the working folder) was removed meanwhile
+        raise FemError(f"{path}: its folder was removed while this run wrote into it") from None
 
     def put_in_place():
         umask = os.umask(0)

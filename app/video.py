@@ -23,8 +23,9 @@ from fem.errors import FemError
 MACRO_BLOCK = 16
 # Frame rates a video can be written at, per format: imageio hands ffmpeg the rate with two
 # decimals (below 0.1 it would be off by 10 % or more, at 0.004 zero: a file with no stream),
-# and a GIF stores each frame's delay as whole hundredths of a second (at most 655 s).
-VIDEO_FPS = {".mp4": (0.1, 1000.0), ".gif": (0.1, 100.0)}
+# and a GIF stores each frame's delay as whole hundredths of a second (at most 655 s); at
+# 1000 frames per second imageio reads the MP4's rate back as 0 (500 reads back right).
+VIDEO_FPS = {".mp4": (0.1, 500.0), ".gif": (0.1, 100.0)}
 # Free space below which a failed encoder is put down to a full disk.
 FULL_DISK_BYTES = 1 << 20
 
