@@ -141,6 +141,22 @@ def atomic_path(path):
     return path.with_name(f"{outputs.temporary_prefix(path)}{outputs.MARKER}{path.suffix}")
 
 
+def claim(path, option) -> Path:
+    """This run's temporary file for `path` (atomic_path's name), made now, after checking that
+    no other running process writes `path`: a second export of the same video is refused before
+    its work, not after. (Two runs starting at the same moment may both pass; the one that
+    finishes second then keeps its output under another name: outputs.put_in_place.)"""
+    path = Path(path)
+    others = outputs.writers_of(path)
+    if others:
+        raise FemError(f"{option} {path}: another run (process {others[0]}) is writing this file; "
+                       "wait for it or choose another name")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = atomic_path(path)
+    temporary.touch()
+    return temporary
+
+
 def numbered_path(folder, stem: str, suffix: str) -> Path:
     """folder/stem-001.suffix, stem-002.suffix, ...: the first name not taken."""
     for n in range(1, 10000):

@@ -66,19 +66,29 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def stale_temporaries(folder, name=None):
-    """The temporary files in `folder` (of output `name` only, if given) whose writer is gone."""
+def temporaries(folder, name=None) -> list[tuple[Path, int]]:
+    """[(path, writer's process id)] of this program's temporary files in `folder` (of output
+    `name` only, if given)."""
     try:
         entries = list(Path(folder).iterdir())
     except OSError:
         return []
-    stale = []
+    found = []
     for path in entries:
         match = TEMPORARY.fullmatch(path.name)
-        if match and (name is None or match["name"] == temporary_stem(name)) \
-                and not process_alive(int(match["pid"])):
-            stale.append(path)
-    return stale
+        if match and (name is None or match["name"] == temporary_stem(name)):
+            found.append((path, int(match["pid"])))
+    return found
+
+
+def stale_temporaries(folder, name=None):
+    """The temporary files in `folder` (of output `name` only, if given) whose writer is gone."""
+    return [path for path, pid in temporaries(folder, name) if not process_alive(pid)]
+
+
+def writers_of(path: Path) -> list[int]:
+    """The process ids of the other running processes writing the output `path` now."""
+    return [pid for _, pid in temporaries(path.parent, path.name) if pid != os.getpid() and process_alive(pid)]
 
 
 def remove_stale_temporaries(folder, name=None) -> int:
@@ -95,9 +105,10 @@ def remove_stale_temporaries(folder, name=None) -> int:
 
 
 def holds_user_files(folder) -> bool:
-    """True when `folder` has anything in it besides killed runs' temporary files."""
-    stale = set(stale_temporaries(folder))
-    return any(path not in stale for path in Path(folder).iterdir())
+    """True when `folder` has anything in it besides this program's temporary files (a killed
+    run's, or this run's own; a run still writing into it holds its lock: FolderLock)."""
+    ours = {path for path, _ in temporaries(folder)}
+    return any(path not in ours for path in Path(folder).iterdir())
 
 
 def put_in_place(temporary, path, overwrite: bool):

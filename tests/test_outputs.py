@@ -122,7 +122,8 @@ def test_two_exports_at_once_never_claim_each_others_video(tmp_path):
     assert codes == [0, 2], results
     winner = next(frames for frames, (code, _, _) in results.items() if code == 0)
     loser_err = next(err for code, _, err in results.values() if code == 2)
-    final_error_line(loser_err, "another run wrote this file")
+    # Refused up front when the winner had claimed the name already, else when it finishes.
+    final_error_line(loser_err, "another run")
     assert video_frames(tmp_path / "v.mp4") == winner
     assert not list(tmp_path.glob(".*part*"))
 
@@ -265,6 +266,14 @@ def test_a_dangling_link_as_stats_is_an_existing_file(here):
     code, out, err = run("simulate", "cube", "--steps", "1", "--stats", "s.jsonl", "--overwrite")
     assert code == 0, err
     assert not (here / "s.jsonl").is_symlink() and (here / "s.jsonl").read_text().count("\n") == 1
+
+
+def test_a_video_another_running_export_writes_is_refused_before_any_work(here):
+    (here / f".v.mp4.{os.getppid()}.softfem-part.mp4").write_bytes(b"being written")   # a live process's
+    code, out, err = run(*SMALL_EXPORT, "--out", "o", "--video", "v.mp4")
+    assert code == 2
+    one_error_line(err, f"--video v.mp4: another run (process {os.getppid()}) is writing this file")
+    assert sorted(p.name for p in here.iterdir()) == [f".v.mp4.{os.getppid()}.softfem-part.mp4"]
 
 
 def test_a_video_named_as_the_out_folder_is_refused(here):

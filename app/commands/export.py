@@ -24,12 +24,14 @@ Nothing is lost: a non-empty --out folder or an existing --video file is
 refused without --overwrite, and every file is written under a temporary
 name and renamed when complete. --overwrite replaces frame_00000.png ..
 frame_{N-1}.png and the video; nothing else in the folder is touched (older
-frames numbered N and above are left, and the summary says so). A folder
+frames numbered N and above are left, and the summary says so). A folder, or a video,
 another export is writing into is refused. An interrupted export (Ctrl-C,
 SIGTERM) or one stopped by a full disk keeps the frames written so far and
 closes the video on them, and says so.
 """
 
+import contextlib
+import os
 import re
 import statistics
 import sys
@@ -45,7 +47,7 @@ import scenes
 from app import EXIT_INTERRUPTED, device
 from app import outputs
 from app.commands.simulate import Tally, check_rejected
-from app.files import atomic_open, interrupts_deferred, refuse_overwrite
+from app.files import atomic_open, claim, interrupts_deferred, refuse_overwrite
 from app.progress import Progress
 from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
@@ -99,9 +101,20 @@ def run(args) -> int:
     video = Path(args.video) if args.video else None
     check_arguments(args, out, video)
     refuse_overwrite(out, args.overwrite)
-    if video is not None:
-        refuse_overwrite(video, args.overwrite)
+    if video is None:
+        return simulate_and_write(args, out, video, width, height)
+    refuse_overwrite(video, args.overwrite)
+    outputs.remove_stale_temporaries(video.parent, video.name)     # a killed export's video
+    claimed = claim(video, "--video")
+    try:
+        return simulate_and_write(args, out, video, width, height)
+    finally:
+        with contextlib.suppress(FileNotFoundError):       # gone already where the video was put in place
+            os.unlink(claimed)
 
+
+def simulate_and_write(args, out: Path, video: Path | None, width: int, height: int) -> int:
+    """Build the simulation and the view, then write the frames into the locked folder out."""
     device.start(args)
     scene = scenes.load_scene(args.scene, overrides=args.set)
     sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
@@ -117,8 +130,6 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     with outputs.FolderLock(out):
         outputs.remove_stale_temporaries(out)
-        if video is not None:                      # a killed export's video, beside it
-            outputs.remove_stale_temporaries(video.parent, video.name)
         refuse_overwrite(out, args.overwrite)      # again: another run may have written meanwhile
         return write_frames(args, sim, scene, view, out, video, steps, fps)
 
