@@ -15,7 +15,10 @@ def simulate(tmp_path, change):
     says ({name: value}, a value None unsets it)."""
     env = {**os.environ, "FEM_CACHE_DIR": str(tmp_path / "cache")}
     for name, value in change.items():
-        env.pop(name, None) if value is None else env.__setitem__(name, value)
+        if value is None:
+            env.pop(name, None)
+        else:
+            env[name] = value
     return subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", "cube", "--steps", "1"],
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
 
