@@ -13,8 +13,9 @@ Rooms by role, each importing only downwards (tests/test_layout.py checks it):
 The plumbing that every room uses sits here at the top, one small module each: files.py
 (atomic writes, overwrite checks, interrupts), outputs.py (special files, locked folders, a
 killed run's leftovers, full disks), progress.py (progress bars and log lines), device.py (the
-Taichi back end), display.py (whether a window can open), and program_name() below. They import
-nothing from the rooms, and a sub-package of five small modules would only lengthen every import.
+Taichi back end), display.py (whether a window can open), video.py (an MP4 or GIF, checked
+before it is put in place), and program_name() below. They import nothing from the rooms, and
+a sub-package of six small modules would only lengthen every import.
 """
 
 import sys

@@ -13,10 +13,12 @@
 Bad input ends with one line `error: ...` on stderr and exit code 2, before any
 work starts where it can be found out then (a traceback only with --debug).
 Exit codes: 0 done, 1 the run failed (every step rejected), 2 bad input,
-130 interrupted (Ctrl-C or SIGTERM; complete files and rows are kept).
+130 interrupted (Ctrl-C, SIGTERM, SIGHUP, SIGQUIT, SIGUSR1/2; complete files and rows are kept).
 """
 
 import argparse
+import contextlib
+import difflib
 import errno
 import math
 import os
@@ -24,6 +26,7 @@ import sys
 from pathlib import Path
 
 from app import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, program_name
+from app import outputs
 from app.display import display_problem
 from app.files import check_output, interrupt_on_sigterm
 from fem.errors import FemError, SizeLimitError
@@ -79,8 +82,31 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
 
     def error(self, message):
-        print(f"error: {self.prog}: {message} (see --help)", file=sys.stderr)
+        print(f"error: {self.prog}: {message}{self.option_hint(message)} (see --help)", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
+
+    def option_hint(self, message) -> str:
+        """'; did you mean --steps?' when argparse did not recognise a mistyped option (`--stpes`).
+        The top-level parser reports a command's unknown options, so every command's are candidates."""
+        options = set(self._option_string_actions)
+        for command in getattr(self, "commands", {}).values():
+            options |= set(command._option_string_actions)
+        unknown = message.removeprefix("unrecognized arguments: ").split() \
+            if message.startswith("unrecognized arguments: ") else []
+        for word in unknown:
+            close = difflib.get_close_matches(word.split("=")[0], sorted(options), n=1)
+            if word.startswith("--") and close:
+                return f"; did you mean {close[0]}?"
+        return ""
+
+    def exit(self, status=0, message=None):
+        """After --help or --version: what they printed is flushed here, so that a reader that
+        went away (`--version | true`) ends the run quietly, as in main()."""
+        try:
+            sys.stdout.flush()
+        except BrokenPipeError:
+            status = reader_gone()
+        super().exit(status, message)
 
 
 def number(kind, low, inclusive=False):
@@ -169,8 +195,9 @@ def build_parser(prog="main.py"):
     p.add_argument("--size", default="640x480", help="image size WxH (default 640x480, at most 8192 a side)")
     p.add_argument("--speed", type=POSITIVE, default=1.0,
                    help="simulated seconds per second of video (default 1: real time)")
-    p.add_argument("--fps", type=POSITIVE, help="video frame rate (default: about 30, exactly what plays "
-                                                "at --speed)")
+    p.add_argument("--fps", type=POSITIVE, help="video frame rate (default: what plays at --speed with a whole "
+                                                "number of steps between frames, as near 30 as that allows: "
+                                                "25 at the usual dt of 0.02 s, 2 steps a frame)")
     p.add_argument("--steps-per-frame", type=COUNT,
                    help="simulation steps per frame (default: what --speed and --fps ask for)")
     p.add_argument("--compare", action="store_true", help="left copy linear, right copy corotational")
@@ -228,7 +255,8 @@ class Version(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None):
         from fem import __version__
-        print(f"softfem {__version__}")
+        with contextlib.suppress(BrokenPipeError):     # parser.exit says so
+            print(f"softfem {__version__}")
         parser.exit()
 
 
@@ -265,6 +293,19 @@ def command_taking(argv, commands):
     return "export"
 
 
+def names_a_scene(word) -> bool:
+    """True for a built-in scene's name or an existing file (`main.py epcot --linear` lacks a
+    command; it does not misspell `export`)."""
+    import scenes
+    return word in scenes.builtin_scenes() or Path(word).exists()
+
+
+def command_hint(word, commands) -> str:
+    """'; did you mean simulate?' for a mistyped command, else ''."""
+    close = difflib.get_close_matches(word, list(commands), n=1)
+    return f"; did you mean {close[0]}?" if close else ""
+
+
 def reader_gone():
     """The reader of stdout went away (`... --stats - | head`): stop quietly, as other
     command-line tools do, with SIGPIPE's exit code; stdout goes to /dev/null so that
@@ -285,7 +326,8 @@ def dispatch(args, parser):
         elif args.topic in commands:
             commands[args.topic].print_help()
         else:
-            parser.error(f"help: no command {args.topic!r}; commands: {', '.join(commands)}")
+            parser.error(f"help: no command {args.topic!r}{command_hint(args.topic, commands)}; "
+                         f"commands: {', '.join(commands)}")
         return 0
     if args.command == "scenes":
         import scenes
@@ -321,11 +363,17 @@ def dispatch(args, parser):
 def main(argv=None) -> int:
     """Run the command line `argv` (default sys.argv[1:]); returns the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    for stream in (sys.stdout, sys.stderr):     # a name the terminal cannot show (PYTHONIOENCODING=ascii)
+        with contextlib.suppress(AttributeError, ValueError):        # a stream without reconfigure (tests)
+            stream.reconfigure(errors="backslashreplace")
     parser = build_parser(program_name())
     commands = parser.commands
     if not argv:
         argv = default_arguments()
     elif not any(word in commands for word in argv) and not {"-h", "--help", "--version"} & set(argv):
+        if not argv[0].startswith("-") and not names_a_scene(argv[0]) and command_hint(argv[0], commands):
+            parser.error(f"no command {argv[0]!r}{command_hint(argv[0], commands)}; "
+                         f"commands: {', '.join(commands)}")
         # Flags alone (`main.py --linear`) start nothing: they belong to a command.
         example = " ".join(argv if not argv[0].startswith("-") else [DEFAULT_SCENE, *argv])
         parser.error(f"no command given; commands: {', '.join(commands)}; "
@@ -340,7 +388,9 @@ def main(argv=None) -> int:
         if getattr(args, "allow_large", False):
             mesh.MAX_TETS = None
         with interrupt_on_sigterm(), limits.lifted(getattr(args, "allow_large", False)):
-            return dispatch(args, parser)
+            code = dispatch(args, parser)
+            sys.stdout.flush()          # here, where a full disk or a closed pipe is caught
+            return code
     except FemError as e:
         if args.debug:
             raise
@@ -354,9 +404,11 @@ def main(argv=None) -> int:
     except BrokenPipeError:
         return reader_gone()
     except OSError as e:
-        if args.debug or e.errno != errno.ENAMETOOLONG:
+        if args.debug or e.errno not in (errno.ENAMETOOLONG, *outputs.WRITE_ERRORS):
             raise
-        print(f"error: {e.filename}: file name too long", file=sys.stderr)
+        if e.filename is None:          # printing to stdout: it stays unusable until the end
+            reader_gone()
+        print(f"error: {outputs.write_failed(e.filename or 'standard output', e)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     finally:
         mesh.MAX_TETS = limit

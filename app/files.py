@@ -28,6 +28,9 @@ def refuse_overwrite(path, overwrite, flag="--overwrite"):
         raise FemError(f"{path}: folder is not empty; use {flag} to write into it anyway")
     if path.is_file():
         raise FemError(f"{path}: file exists; use {flag} to replace it")
+    if path.is_symlink() and not path.exists():
+        raise FemError(f"{path}: is a link to {os.readlink(path)}, which does not exist; "
+                       f"use {flag} to replace the link")
 
 
 def check_output(path, option, kind):
@@ -80,12 +83,16 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise FemError(f"{path.parent}: cannot create folder: {e.strerror}") from None
-    fd, tmp = tempfile.mkstemp(prefix=outputs.temporary_prefix(path), suffix=".part", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=outputs.temporary_prefix(path), suffix=f".{outputs.MARKER}",
+                                    dir=path.parent)
+    except FileNotFoundError:             # the folder (or the working folder) was removed meanwhile
+        raise FemError(f"{path}: its folder was removed while this run wrote into it") from None
 
     def put_in_place():
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
+        os.fchmod(fd, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
         outputs.put_in_place(tmp, path, overwrite)
 
     try:
@@ -112,20 +119,42 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
 
 
 def _stream(path, mode):
-    """Write straight into a special file (a device, a FIFO), as to stdout."""
+    """Write straight into a special file (a device, a FIFO), as to stdout; a device that
+    takes nothing (/dev/full) is a FemError."""
     try:
-        f = open(path, mode)
+        f = open(path, mode, buffering=1 if "b" not in mode else -1)   # each row as it comes
     except OSError as error:
         raise FemError(f"{path}: cannot write ({error.strerror})") from None
-    with f:
-        yield f
+    try:
+        with f:
+            yield f
+    except OSError as error:
+        if error.errno not in outputs.WRITE_ERRORS:
+            raise
+        raise outputs.write_failed(path, error) from None
 
 
 def atomic_path(path):
     """A temporary path beside `path` keeping its suffix (for writers that want a file name),
     this process's own; call app.outputs.put_in_place(tmp, path, overwrite) when it is complete."""
     path = Path(path)
-    return path.with_name(f".{path.stem}.{os.getpid()}.part{path.suffix}")
+    return path.with_name(f"{outputs.temporary_prefix(path)}{outputs.MARKER}{path.suffix}")
+
+
+def claim(path, option) -> Path:
+    """This run's temporary file for `path` (atomic_path's name), made now, after checking that
+    no other running process writes `path`: a second export of the same video is refused before
+    its work, not after. (Two runs starting at the same moment may both pass; the one that
+    finishes second then keeps its output under another name: outputs.put_in_place.)"""
+    path = Path(path)
+    others = outputs.writers_of(path)
+    if others:
+        raise FemError(f"{option} {path}: another run (process {others[0]}) is writing this file; "
+                       "wait for it or choose another name")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = atomic_path(path)
+    temporary.touch()
+    return temporary
 
 
 def numbered_path(folder, stem: str, suffix: str) -> Path:
@@ -154,12 +183,17 @@ def signals_handled(signals, handler):
             signal.signal(s, old)
 
 
+# What stops a run as Ctrl-C does: a killed job or cancelled CI step (SIGTERM), a closed
+# terminal (SIGHUP), Ctrl-\ (SIGQUIT), and the user signals, whose default also ends the process.
+STOP_SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2]
+
+
 @contextlib.contextmanager
 def interrupt_on_sigterm():
-    """Treat SIGTERM (a killed job, a cancelled CI step) like Ctrl-C, so that a run
-    stops the same way: complete files kept, temporary ones removed, exit code 130.
+    """Treat SIGTERM and the other STOP_SIGNALS like Ctrl-C, so that a run stops the
+    same way: complete files kept, temporary ones removed, exit code 130.
 
-    Only the first Ctrl-C or SIGTERM interrupts; later ones (a second signal a few ms
+    Only the first of them interrupts; later ones (a second signal a few ms
     after the first, while the run is already stopping) are ignored, here and after
     the block, so that they cannot cut the clean-up short or change the exit code."""
     arrived = []
@@ -170,22 +204,22 @@ def interrupt_on_sigterm():
             raise KeyboardInterrupt
 
     try:
-        with signals_handled([signal.SIGINT, signal.SIGTERM], interrupt):
+        with signals_handled(STOP_SIGNALS, interrupt):
             yield
     finally:
         if arrived:
             with contextlib.suppress(ValueError):       # not the main thread
-                signal.signal(signal.SIGTERM, signal.SIG_IGN)
-                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                for s in STOP_SIGNALS:
+                    signal.signal(s, signal.SIG_IGN)
 
 
 @contextlib.contextmanager
 def interrupts_deferred():
-    """Ctrl-C or SIGTERM arriving inside the block takes effect when it ends: a video
-    frame half sent to the encoder, or a container half closed, would leave a file no
+    """Ctrl-C, SIGTERM or another of STOP_SIGNALS arriving inside the block takes effect when it
+    ends: a video frame half sent to the encoder, or a container half closed, would leave a file no
     player can open."""
     arrived = []
-    with signals_handled([signal.SIGINT, signal.SIGTERM], lambda signum, frame: arrived.append(signum)) as outer:
+    with signals_handled(STOP_SIGNALS, lambda signum, frame: arrived.append(signum)) as outer:
         yield
     if arrived:
         # Hand the signal to the handler that was in place (interrupt_on_sigterm's counts it).

@@ -2,9 +2,10 @@
 
 - A special file (a device such as /dev/null, a FIFO) given as an output is written to
   as a stream, like `-`, and never replaced by a regular file.
-- Temporary files carry the writing process's id (`.NAME.PID.xxxx.part`), so two runs
-  never share one, and a later run can tell the leftovers of a killed run (SIGKILL: no
-  clean-up) from those of a run still going, and remove them.
+- Temporary files carry this program's marker and the writing process's id
+  (`.NAME.PID.xxxx.softfem-part`), so two runs never share one, and a later run can tell the
+  leftovers of a killed run (SIGKILL: no clean-up) from those of a run still going, and
+  remove them; a user's own file of a similar name (`.notes.2023.part`) is never touched.
 - Without --overwrite a finished file is put in place only if nothing took its name in
   the meantime (a hard link cannot replace a file, a rename can): a run never claims a
   file another run wrote.
@@ -25,8 +26,14 @@ from fem.errors import FemError
 # What writing a file can fail with, whatever is written: a full disk, a quota, a file
 # too large for the file system, an I/O error, a file system gone read-only.
 WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS)
-# .NAME.PID.part, .NAME.PID.xxxxxxxx.part or .STEM.PID.part.SUFFIX: app.files' temporary names.
-TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)(\.[A-Za-z0-9_]+)?\.part(\.\w+)?")
+# Every temporary name of this program ends in this marker (and maybe the output's suffix).
+MARKER = "softfem-part"
+# .NAME.PID.xxxxxxxx.softfem-part or .NAME.PID.softfem-part.SUFFIX: app.files' temporary
+# names. A process id has at most 7 digits (Linux's pid_max is at most 2**22).
+TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>[1-9]\d{0,6})(\.\w+)?\." + MARKER + r"(\.\w+)?")
+# Bytes of the output's name kept in a temporary name: with the rest it stays within the
+# 255 bytes a file name may have, however long a valid output name is.
+NAME_BYTES = 160
 
 
 def is_special(path) -> bool:
@@ -39,9 +46,14 @@ def is_special(path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
+def temporary_stem(name: str) -> str:
+    """An output's name as its temporary names carry it: at most NAME_BYTES bytes of it."""
+    return name.encode()[:NAME_BYTES].decode(errors="ignore")
+
+
 def temporary_prefix(path: Path) -> str:
     """The start of this process's temporary names for `path`: '.NAME.PID.'"""
-    return f".{path.name}.{os.getpid()}."
+    return f".{temporary_stem(path.name)}.{os.getpid()}."
 
 
 def process_alive(pid: int) -> bool:
@@ -54,18 +66,29 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def stale_temporaries(folder, name=None):
-    """The temporary files in `folder` (of output `name` only, if given) whose writer is gone."""
+def temporaries(folder, name=None) -> list[tuple[Path, int]]:
+    """[(path, writer's process id)] of this program's temporary files in `folder` (of output
+    `name` only, if given)."""
     try:
         entries = list(Path(folder).iterdir())
     except OSError:
         return []
-    stale = []
+    found = []
     for path in entries:
         match = TEMPORARY.fullmatch(path.name)
-        if match and (name is None or match["name"] == name) and not process_alive(int(match["pid"])):
-            stale.append(path)
-    return stale
+        if match and (name is None or match["name"] == temporary_stem(name)):
+            found.append((path, int(match["pid"])))
+    return found
+
+
+def stale_temporaries(folder, name=None):
+    """The temporary files in `folder` (of output `name` only, if given) whose writer is gone."""
+    return [path for path, pid in temporaries(folder, name) if not process_alive(pid)]
+
+
+def writers_of(path: Path) -> list[int]:
+    """The process ids of the other running processes writing the output `path` now."""
+    return [pid for _, pid in temporaries(path.parent, path.name) if pid != os.getpid() and process_alive(pid)]
 
 
 def remove_stale_temporaries(folder, name=None) -> int:
@@ -82,16 +105,27 @@ def remove_stale_temporaries(folder, name=None) -> int:
 
 
 def holds_user_files(folder) -> bool:
-    """True when `folder` has anything in it besides killed runs' temporary files."""
-    stale = set(stale_temporaries(folder))
-    return any(path not in stale for path in Path(folder).iterdir())
+    """True when `folder` has anything in it besides this program's temporary files (a killed
+    run's, or this run's own; a run still writing into it holds its lock: FolderLock)."""
+    ours = {path for path, _ in temporaries(folder)}
+    return any(path not in ours for path in Path(folder).iterdir())
 
 
 def put_in_place(temporary, path, overwrite: bool):
     """Rename the finished `temporary` to `path`. Without overwrite, a file that appeared at
     `path` while this run was writing (another run) is kept, and this run's output goes to
-    the first free numbered name beside it, which the FemError names."""
+    the first free numbered name beside it, which the FemError names. A folder removed
+    during the run (rm -r out/) is a FemError too: what was in it is gone."""
     temporary, path = Path(temporary), Path(path)
+    try:
+        placed_at(temporary, path, overwrite)
+    except FileNotFoundError:
+        raise FemError(f"{path}: its folder was removed while this run wrote into it; "
+                       "this output went with it") from None
+
+
+def placed_at(temporary: Path, path: Path, overwrite: bool):
+    """put_in_place's renaming: never over another run's file without overwrite."""
     if overwrite:
         os.replace(temporary, path)
         return
@@ -101,6 +135,8 @@ def put_in_place(temporary, path, overwrite: bool):
         return
     except FileExistsError:
         pass
+    except FileNotFoundError:
+        raise
     except OSError:                           # no hard links here (e.g. FAT): check, then rename
         if not os.path.lexists(path):
             os.replace(temporary, path)

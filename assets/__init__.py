@@ -59,6 +59,8 @@ def mesh_file_scene(path):
         mesh = {"file": str(path)}
         vertices = read_tet_mesh(path).vertices
     largest_side = float((vertices.max(axis=0) - vertices.min(axis=0)).max())
+    if not largest_side > 0:
+        raise FemError(f"{path}: every vertex is at the same point; a shape needs a size")
     return {
         "name": path.stem,
         "description": f"{path.name}: wrung and spun, no gravity (the defaults for a mesh file)",

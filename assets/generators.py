@@ -6,6 +6,8 @@ from signed distance functions (metres, negative inside), with y up. All
 generators are deterministic and take well under a second at their defaults.
 """
 
+import math
+
 import numpy as np
 
 from assets.lattice import implicit_mesh, lattice_mesh
@@ -124,10 +126,15 @@ def _vector(name, value, kind):
         raise FemError(f"{name} must be three numbers, got {value!r}") from None
     ok = len(values) == 3 and all(
         isinstance(v, (int, float)) and not isinstance(v, bool)
-        and (kind is float or float(v).is_integer()) and np.isfinite(v) for v in values)
+        and (kind is float or float(v).is_integer()) and _finite(v) for v in values)
     _require(ok, f"{name} must be three {'integers' if kind is int else 'numbers'}, "
                  f"got {value!r}")
     return tuple(kind(v) for v in values)
+
+
+def _finite(number):
+    """An int is finite however large (1e20 cells reaches the size check, which says why not)."""
+    return isinstance(number, int) or math.isfinite(number)
 
 
 def _centre_lattice(lower, upper, spacing):

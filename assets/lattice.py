@@ -8,6 +8,8 @@ the tets' quality allows. Each step keeps the mesh conforming, so the result is
 valid for FEM whatever the shape.
 """
 
+import math
+
 import numpy as np
 
 from fem.mesh import (boundary_faces, check_tet_count, dihedral_angles, prepare_mesh,
@@ -68,8 +70,9 @@ def implicit_mesh(sdf, lower, upper, spacing, source, min_dihedral_deg=12.0):
     make some tet's smallest dihedral angle drop below `min_dihedral_deg`.
     """
     lower = np.asarray(lower, dtype=np.float64) - spacing     # one empty cell all round
-    counts = np.ceil((np.asarray(upper) + spacing - lower) / spacing).astype(int)
-    lattice = int(np.prod(counts))
+    # Python integers: a resolution of 1e20 would wrap numpy's 64-bit product round.
+    counts = [math.ceil(n) for n in (np.asarray(upper) + spacing - lower) / spacing]
+    lattice = math.prod(counts)
     # Before the lattice is allocated (lattice_mesh counts the cells the shape fills, 5 tets each).
     check_tet_count(lattice, source, f"a lattice of {lattice:,} cells (at least one tet each)")
     centres = lower + (np.argwhere(np.ones(counts, dtype=bool)) + 0.5) * spacing

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -113,12 +114,15 @@ def checksum(*arrays):
 def read_cache_entry(cached, *names):
     """(vertices, tets, *names) from a cache file, or None when it is absent, unreadable or
     does not match the checksum written with it."""
+    if not Path(cached).is_file():      # absent, or a FIFO or device, which would block or never end
+        return None
     try:
         with np.load(cached, allow_pickle=False) as data:
             arrays = tuple(data[name] for name in ("vertices", "tets", *names))
             stored = str(data["checksum"])
-    # A damaged cache entry is rebuilt, not reported: the cache is disposable.
-    except (OSError, KeyError, ValueError, EOFError):
+    # A damaged cache entry (truncated: not a zip file any more) is rebuilt, not reported:
+    # the cache is disposable.
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
         return None
     return arrays if stored == checksum(*arrays[:2]) else None
 

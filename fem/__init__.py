@@ -14,6 +14,9 @@ import os
 __version__ = "0.1.0"
 
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")   # before taichi is first imported
+from fem import environment  # noqa: E402
+
+environment.prepare()                                       # also before taichi is first imported
 
 from fem.errors import FemError  # noqa: E402
 from fem.runtime import init  # noqa: E402

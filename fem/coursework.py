@@ -64,7 +64,7 @@ def read_coursework_scene(path):
         material.check(f"{path}:{n}")
         if fixed not in (0, 1):
             raise FemError(f"{path}:{n}: isFixed must be 0 or 1, got {fixed:g}")
-        if not np.linalg.norm(pose[3:]) > 0:
+        if not np.abs(pose[3:]).max() > 0:
             raise FemError(f"{path}:{n}: the rotation quaternion must be non-zero")
         placed = place_mesh(meshes[mesh_path], pose[:3], pose[3:])
         check_placed(placed.vertices, placed.tets, f"{path}:{n}")

@@ -16,7 +16,10 @@ from fem.errors import FemError, SizeLimitError
 # Sizes, each lifted by lifted().
 MAX_BODIES = 256             # the coarse preconditioner grows with the square of the body count
 MAX_SCENE_TETS = 2_000_000   # all bodies together (a comparison doubles a scene)
-MAX_FILE_BYTES = 256 * 2**20  # a mesh or scene file; a million-tet MEDIT file is about 60 MB
+MAX_FILE_BYTES = 256 * 2**20  # a mesh file; a million-tet MEDIT file is about 60 MB
+# A TOML scene file: the parser takes about 25 times a file's size in memory (a 240 MB file:
+# 6 GB, then MemoryError), and a scene names its meshes' files rather than holding them.
+MAX_SCENE_FILE_BYTES = 16 * 2**20
 MAX_DOME_LEGS = 64
 _lifted = False
 
@@ -47,15 +50,16 @@ def check_size(count, limit, where, what):
         raise SizeLimitError(f"{where}: {what} is more than the limit of {limit:,}")
 
 
-def check_file_size(path):
-    """SizeLimitError for a file larger than MAX_FILE_BYTES, before it is read."""
+def check_file_size(path, limit=None):
+    """SizeLimitError for a file larger than limit (default MAX_FILE_BYTES), before it is read."""
+    limit = limit or MAX_FILE_BYTES
     try:
         size = path.stat().st_size
     except OSError:
         return                       # the reader says what is wrong with it
-    if not _lifted and size > MAX_FILE_BYTES:
+    if not _lifted and size > limit:
         raise SizeLimitError(f"{path}: a file of {size / 2**20:,.0f} MB is more than the limit of "
-                             f"{MAX_FILE_BYTES / 2**20:,.0f} MB")
+                             f"{limit / 2**20:,.0f} MB")
 
 
 def check_body_count(count, where):

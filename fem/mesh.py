@@ -93,7 +93,7 @@ def check_tet_count(count, source, what=None):
         what = what or f"{count:,} tets"
         raise SizeLimitError(f"{source}: {what} is more than the limit of {MAX_TETS:,} tets per mesh "
                              f"(fem.mesh.MAX_TETS; this would take about "
-                             f"{count * BYTES_PER_TET / 1e9:.1f} GB of memory)")
+                             f"{count * BYTES_PER_TET / 1e9:,.3g} GB of memory)")
 
 
 def prepare_mesh(vertices, tets, source, *, tet_lines=None):
@@ -146,6 +146,13 @@ def prepare_mesh(vertices, tets, source, *, tet_lines=None):
     if len(repeated):
         t = repeated[0]
         raise FemError(f"{where(t)} repeats a vertex: {tets[t].tolist()}")
+    # Two copies of a tet share every face: such a mesh has no surface to draw or push.
+    _, first, counts = np.unique(sorted_tets, axis=0, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        copies = np.argmax(counts > 1)
+        t = first[copies]
+        raise FemError(f"{where(t)} (vertices {tets[t].tolist()}) appears {counts[copies]} times; "
+                       f"{int((counts - 1).sum())} duplicate tet(s) in all")
 
     with np.errstate(over="ignore", invalid="ignore"):
         volumes = signed_volumes(vertices, tets)

@@ -10,6 +10,7 @@ import types
 
 import taichi as ti
 
+from fem import environment
 from fem.errors import FemError
 
 ARCHES = ("auto", "cpu", "gpu")
@@ -38,15 +39,22 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
     settings = (arch, precision, debug)
     if not restart and _current.get("settings") == settings and _current.get("runtime") is ti.lang.impl.get_runtime():
         return _current["arch"]              # running as asked (and nobody called ti.init since)
+    if environment.problems():
+        raise FemError(environment.problems()[0])
     brief_source_positions(not debug)
     remember_sources()
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
     ignore_taichi_arch_variable(arch)
+    cache, note = environment.offline_cache_folder()
+    if note:
+        print(f"warning: {note}", file=sys.stderr)
     # Taichi prints a banner on stdout; keep stdout for our own output
+    # Without a cache Taichi's default path stays (an empty one fails an assertion at exit).
+    where = {"offline_cache_file_path": cache} if cache else {}
     with contextlib.redirect_stdout(io.StringIO()), taichi_variables_reported():
-        ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug,
-                offline_cache=True, offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR)
+        ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug, offline_cache=cache is not None,
+                offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR, **where)
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")

@@ -224,7 +224,9 @@ def place_mesh(mesh, position=(0, 0, 0), rotation=(1, 0, 0, 0), scale=1.0):
 
 
 def quaternion_matrix(q):
-    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    q = np.asarray(q, float)
+    q = q / np.abs(q).max()       # first: the norm of (1e300, 0, 0, 1e300) would overflow to inf
+    w, x, y, z = q / np.linalg.norm(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
@@ -277,3 +279,34 @@ def check_placed(vertices, tets, where):
     if not side > 0 or not (volumes > VOLUME_TOLERANCE * side**3).all():
         raise FemError(f"{where}: placed at this position and scale, tets lose their volume in "
                        f"floating point (body {side:.3g} m across, {farthest:.3g} m from the origin)")
+
+
+# Machine epsilon of each precision, and the share of it a model may use up: a coordinate's
+# rounding must stay below RESOLVED of the smallest edge, and mu must not vanish in the
+# rounding of lam + 2 mu (lam / mu below RESOLVED / epsilon).
+EPSILON = {"f32": float(np.finfo(np.float32).eps), "f64": float(np.finfo(np.float64).eps)}
+RESOLVED = 1e-3
+
+
+def check_precision(scene, precision: str):
+    """FemError for a scene that `precision` ("f32" or "f64") cannot represent: a body so far
+    from the origin that its coordinates round by more than RESOLVED of its smallest edge
+    (1 cm tets at 1e5 m in f32: a body at rest reports a volume ratio of 1.56), or nu so close
+    to 0.5 that lam drowns mu (total energy 50 J -> 9e5 J in 20 steps)."""
+    epsilon = EPSILON[precision]
+    for body in scene.bodies:
+        where = f"{scene.path or scene.name}: body {body.name!r}"
+        vertices, tets = body.mesh.vertices, body.mesh.tets
+        edges = np.linalg.norm(vertices[tets[:, [0, 0, 0, 1, 1, 2]]] - vertices[tets[:, [1, 2, 3, 2, 3, 3]]], axis=2)
+        farthest, shortest = float(np.abs(vertices).max()), float(edges.min())
+        if farthest * epsilon > RESOLVED * shortest:
+            raise FemError(f"{where}: {farthest:.3g} m from the origin, {precision} rounds coordinates to "
+                           f"{farthest * epsilon:.2g} m, too coarse for its {shortest:.3g} m edges; place it "
+                           f"within {RESOLVED * shortest / epsilon:.3g} m of the origin, or use precision f64")
+        nu = body.material.nu
+        if 2 * nu / (1 - 2 * nu) * epsilon > RESOLVED:
+            highest = 0.5 * (RESOLVED / epsilon) / (1 + RESOLVED / epsilon)
+            digits = int(-np.log10(0.5 - highest)) + 2
+            raise FemError(f"{where}: nu = {nu!r} makes lam {2 * nu / (1 - 2 * nu):.3g} times mu, more than "
+                           f"{precision} can add mu to; use nu <= {np.floor(highest * 10**digits) / 10**digits}"
+                           + (" or precision f64" if precision == "f32" else ""))

@@ -98,7 +98,7 @@ def read_toml_data(path):
     path = Path(path)
     if not path.is_file():
         raise FemError(f"{path}: no such scene file")
-    limits.check_file_size(path)
+    limits.check_file_size(path, limits.MAX_SCENE_FILE_BYTES)
     try:
         with open(path, "rb") as f:
             data = tomllib.load(f)
@@ -155,6 +155,8 @@ def read_toml_scene(path, build_mesh, data=None):
     if "camera" in data:
         cam = top.table("camera", ["eye", "target"])
         scene.camera = {"eye": cam.require("eye", "vec3"), "target": cam.require("target", "vec3")}
+        if not np.linalg.norm(np.subtract(scene.camera["eye"], scene.camera["target"])) > 0:
+            raise FemError(f"{path}: camera: eye and target are the same point; the camera looks nowhere")
     return scene
 
 

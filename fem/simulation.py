@@ -19,7 +19,7 @@ import taichi as ti
 from fem import pool
 from fem.builder import initial_state, model_arrays
 from fem.errors import FemError
-from fem.scene import METHODS, Material, select_vertices
+from fem.scene import METHODS, Material, check_precision, select_vertices
 from fem.implicit.effects import FRICTION_SPEED
 from fem.implicit.solver import StepInfo
 
@@ -59,6 +59,7 @@ class Simulation:
                      "step": step, "integrator": integrator}
         settings = replace(scene.solver, **{k: v for k, v in overrides.items() if v is not None})
         settings.check(scene.path or scene.name)
+        check_precision(scene, "f64" if ti.lang.impl.get_runtime().default_fp == ti.f64 else "f32")
         self.scene = scene                      # the description; never edited
         parts = pool.borrow(self, model_arrays(scene), scene.effects, settings)   # fields, kernels compiled
         self.model, self.solver, self.measure = parts.model, parts.solver, parts.measure

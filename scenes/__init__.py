@@ -132,10 +132,18 @@ def apply_override(data, text):
     if isinstance(value, dict):                   # body.0.mesh={file="my.mesh"}
         for name in ("file", "surface"):
             if isinstance(value.get(name), str) and value[name]:
-                value[name] = str(Path(value[name]).expanduser().absolute())
+                value[name] = user_path(value[name], key)
     elif parts[-1] in ("file", "surface") and isinstance(value, str) and value:
-        value = str(Path(value).expanduser().absolute())
+        value = user_path(value, key)
     node[parts[-1]] = value
+
+
+def user_path(text, key):
+    """The absolute path of a --set file name, with ~ or ~user expanded."""
+    try:
+        return str(Path(text).expanduser().absolute())
+    except RuntimeError:                          # ~nouser: no such user
+        raise FemError(f"--set {key}: {text}: no such user's home folder") from None
 
 
 def shortened(text, limit=80):

@@ -1,6 +1,7 @@
 """Tests for assets/: generators, surface tetrahedralisation and its cache, build_mesh."""
 
 import functools
+import os
 from pathlib import Path
 
 import numpy as np
@@ -175,7 +176,18 @@ def test_cache_key_depends_on_parameters_and_content(tmp_path, cache, monkeypatc
     assert len(list(cache.glob("*.npz"))) == 3
 
 
-def test_damaged_cache_entry_is_rebuilt(tmp_path, cache, monkeypatch):
+def truncated(entry):
+    entry.write_bytes(entry.read_bytes()[:-40])
+
+
+def fifo(entry):
+    entry.unlink()
+    os.mkfifo(entry)              # reading it would block forever
+
+
+@pytest.mark.parametrize("damage", [lambda entry: entry.write_bytes(b"not a zip file"), truncated, fifo],
+                         ids=["not a zip file", "truncated", "a FIFO"])
+def test_damaged_cache_entry_is_rebuilt(tmp_path, cache, monkeypatch, damage):
     import trimesh
 
     monkeypatch.setattr(tetrahedralize, "_run_wildmeshing",
@@ -184,10 +196,11 @@ def test_damaged_cache_entry_is_rebuilt(tmp_path, cache, monkeypatch):
     trimesh.creation.box().export(path)
     tetrahedralize.tetrahedralize_surface(path, progress=False)
     [entry] = cache.glob("*.npz")
-    entry.write_bytes(b"not a zip file")
+    damage(entry)
     mesh = tetrahedralize.tetrahedralize_surface(path, progress=False)
     assert tetrahedralize.last_cache_hit is False
     assert len(mesh.tets) == 1
+    assert entry.is_file()                         # rebuilt in place
 
 
 def test_unreadable_surface_is_a_fem_error(tmp_path, cache):

@@ -304,3 +304,19 @@ def test_the_committed_benchmark_page_is_its_json_rendered():
     if "observed_order" not in results["scenes"][0]:
         pytest.skip("docs/benchmark.json predates the BDF2 reference and integrator axis: `bench --docs` renews it")
     assert report.markdown(results) == (report.DOCS / "benchmark.md").read_text()
+
+
+def test_point_labels_at_one_place_are_stacked_not_piled():
+    """bench --quick's labels piled on each other where several series share a dt."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from app.bench.plot import LABEL_HEIGHT, place_labels
+
+    fig, ax = plt.subplots()
+    ax.set_xscale("log"), ax.set_yscale("log")
+    ax.plot([1, 10], [1e-3, 1e-1])
+    offsets = place_labels(ax, [(2.0, 1e-2, "0.02 s", "red"), (2.0, 1e-2, "0.02 s", "blue"),
+                                (2.0, 1.01e-2, "1e-05", "green"), (8.0, 1e-3, "J5", "grey"), (2.0, 1e-2, "", "k")])
+    plt.close(fig)
+    assert offsets == [(3.0, 3.0), (3.0, 3.0 + LABEL_HEIGHT), (3.0, 3.0 + 2 * LABEL_HEIGHT), (3.0, 3.0)]

@@ -8,6 +8,7 @@ must reach a separate process.
 import contextlib
 import io
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -43,6 +44,18 @@ def one_error_line(err, *words):
     return lines[0]
 
 
+# The line a run without a terminal logs every 10 s (app.progress): a loaded machine prints
+# some before an error found late in the run (a full disk, a video another run wrote).
+PROGRESS_LINE = re.compile(r".+: \d+/\d+ \w+s \(\d+ %\) after \d+ s")
+
+
+def final_error_line(err, *words):
+    """The one `error:` line that ends err, after nothing but progress lines."""
+    *progress, last = err.strip().splitlines() or [""]
+    assert all(PROGRESS_LINE.fullmatch(line) for line in progress), err
+    return one_error_line(last, *words)
+
+
 @pytest.fixture
 def here(tmp_path, monkeypatch):
     """An empty current folder, like a fresh clone's user would have for output."""
@@ -67,6 +80,18 @@ def test_help_of_one_command_shows_its_options(here):
     code, _, err = run("help", "exprot")
     assert code == 2
     one_error_line(err, "no command 'exprot'")
+
+
+@pytest.mark.parametrize("argv, hint", [(["simulat", "epcot"], "no command 'simulat'; did you mean simulate?"),
+                                        (["help", "simulat"], "no command 'simulat'; did you mean simulate?"),
+                                        (["simulate", "cube", "--stpes", "5"], "--stpes 5; did you mean --steps?"),
+                                        (["export", "cube", "--frame=3"], "--frame=3; did you mean --frames?"),
+                                        (["epcot", "--linear"], "e.g. `main.py simulate epcot --linear`")])
+def test_a_mistyped_command_or_option_gets_a_did_you_mean(here, argv, hint):
+    code, out, err = run(*argv)
+    assert code == 2 and out == ""
+    one_error_line(err, hint)
+    assert list(here.iterdir()) == []
 
 
 @pytest.mark.parametrize("argv", [["--linear"], ["--frames", "3"], ["--debug"]])
@@ -270,12 +295,13 @@ def wait_for(condition, process, timeout=120):
     assert process.poll() is None, process.communicate()
 
 
-@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT,
+                                           signal.SIGUSR1], ids=["ctrl-c", "sigterm", "sighup", "sigquit", "sigusr1"])
 def test_interrupted_simulate_keeps_every_complete_row(tmp_path, signal_number):
     process = start(["simulate", "cube86", "--steps", "100000", "--stats", "s.jsonl"], tmp_path)
 
     def rows_written():
-        return sum(p.read_text().count("\n") for p in tmp_path.glob(".s.jsonl.*.part"))
+        return sum(p.read_text().count("\n") for p in tmp_path.glob(".s.jsonl.*.softfem-part"))
 
     wait_for(lambda: rows_written() >= 20, process)
     process.send_signal(signal_number)

@@ -17,11 +17,14 @@ FIGURES = ["accuracy_vs_time", "volume_bunny", "volume_cube", "volume_cube86", "
 # Numbers agree to 5 % or 0.01 (f32 round-off in long runs, a few solver iterations more or less).
 RELATIVE, ABSOLUTE = 0.05, 1e-2
 # A run that blows up amplifies round-off, and round-off differs between processors (the same kernels
-# compiled for AVX-512 or AVX2 add in another order): the one-solve step at dt 0.5 s on the hard case
-# agrees for its first steps only, then rises to a different height. Its first FIRST_STEPS energies are
-# compared, and what the figure says of the rest: that it rises.
+# compiled for AVX-512 or AVX2 add in another order) and between runs on one machine (166,632 J here,
+# 97,646 J there at the third point): the one-solve step at dt 0.5 s on the hard case agrees for its
+# first FIRST_STEPS energies only. Of the rest, what is stable is compared (unstable_features): the
+# step at which it rises past RISE times its start, that every energy is positive, and the order of
+# magnitude (a factor DECADE) of the largest.
 UNSTABLE = {"hard_case_energy.total_energy.single"}
-FIRST_STEPS = 4
+FIRST_STEPS = 2
+RISE, DECADE = 10.0, 10.0
 # The Newton step on the hard case takes 98 % of the energy away in its first step (f32); what is left
 # carries the round-off of what was taken (4 to 5 % of it between an AVX-512 and an AVX2 processor), so
 # its energies agree to 5 % or to START_SHARE of the run's start energy.
@@ -37,6 +40,8 @@ def differences(made, committed, where=""):
         return [d for key in made for d in differences(made[key], committed[key], f"{where}.{key}")]
     if isinstance(made, list) and isinstance(committed, list):
         if where in UNSTABLE:
+            if not same_blow_up(made, committed):
+                return [(where, unstable_features(made), unstable_features(committed))]
             made, committed = made[:FIRST_STEPS], committed[:FIRST_STEPS]
         if len(made) != len(committed):
             return [(where, f"{len(made)} values", f"{len(committed)} values")]
@@ -52,6 +57,20 @@ def differences(made, committed, where=""):
     if numbers:
         return [] if math.isclose(made, committed, rel_tol=RELATIVE, abs_tol=ABSOLUTE) else [(where, made, committed)]
     return [] if made == committed or where.endswith("source") else [(where, made, committed)]
+
+
+def unstable_features(energies):
+    """What a blown-up run repeats on any machine: (the first index where the energy passes RISE
+    times its start, whether every energy is positive, the largest energy)."""
+    rise = next((i for i, e in enumerate(energies) if e > RISE * energies[0]), None)
+    return rise, all(e > 0 for e in energies), max(energies)
+
+
+def same_blow_up(made, committed):
+    """Two blown-up runs agree: the same rise step and sign, largest energies within a factor DECADE."""
+    (rise, positive, largest), (rise_c, positive_c, largest_c) = map(unstable_features, (made, committed))
+    return (rise, positive) == (rise_c, positive_c) and positive and \
+        max(largest, largest_c) < DECADE * min(largest, largest_c)
 
 
 @pytest.fixture(scope="module")
@@ -85,8 +104,14 @@ def test_a_dissipated_energy_is_compared_against_the_run_s_start():
 
 def test_a_run_that_blows_up_is_compared_by_its_first_steps_and_its_rise():
     committed = {"total_energy": {"single": [1.0, 9.25, 30.0, 90.0, 3e4]}, "largest_rise_over_start": {"single": 1e4}}
-    other_processor = {"total_energy": {"single": [1.0, 9.26, 30.1, 90.2, 2e3]}, "largest_rise_over_start": {"single": 1e3}}
+    other_processor = {"total_energy": {"single": [1.0, 9.26, 17.1, 60.2, 2.2e4]}, "largest_rise_over_start": {"single": 1e3}}
     assert differences(other_processor, committed, "hard_case_energy") == []
+    later = {"total_energy": {"single": [1.0, 9.26, 9.9, 90.2, 3e4]}, "largest_rise_over_start": {"single": 1e4}}
+    assert differences(later, committed, "hard_case_energy") == [
+        ("hard_case_energy.total_energy.single", (3, True, 3e4), (2, True, 3e4))]
+    smaller = {"total_energy": {"single": [1.0, 9.26, 30.0, 90.0, 3e2]}, "largest_rise_over_start": {"single": 1e2}}
+    assert differences(smaller, committed, "hard_case_energy") == [
+        ("hard_case_energy.total_energy.single", (2, True, 3e2), (2, True, 3e4))]
     early = {"total_energy": {"single": [1.0, 5.33, 30.0, 90.0, 3e4]}, "largest_rise_over_start": {"single": 1e4}}
     assert differences(early, committed, "hard_case_energy") == [("hard_case_energy.total_energy.single[1]", 5.33, 9.25)]
     tamed = {"total_energy": {"single": [1.0, 9.25, 30.0, 90.0, 3e4]}, "largest_rise_over_start": {"single": 0.0}}

@@ -19,7 +19,7 @@ import pytest
 
 from app import files, outputs
 from fem.errors import FemError
-from test_cli import ROOT, here, one_error_line, run  # noqa: F401  (here is a fixture)
+from test_cli import ROOT, final_error_line, here, one_error_line, run  # noqa: F401  (here is a fixture)
 
 SMALL_EXPORT = ["export", "cube", "--frames", "3", "--size", "64x64", "--renderer", "software"]
 
@@ -89,8 +89,16 @@ def test_put_in_place_never_replaces_without_overwrite(tmp_path):
 def test_temporary_names_are_this_processs_own(tmp_path):
     with files.atomic_open(tmp_path / "s.jsonl") as f:
         name = os.path.basename(os.readlink(f"/proc/self/fd/{f.fileno()}"))
-    assert name.startswith(f".s.jsonl.{os.getpid()}.") and name.endswith(".part")
-    assert files.atomic_path(tmp_path / "v.mp4").name == f".v.{os.getpid()}.part.mp4"
+    assert name.startswith(f".s.jsonl.{os.getpid()}.") and name.endswith(".softfem-part")
+    assert files.atomic_path(tmp_path / "v.mp4").name == f".v.mp4.{os.getpid()}.softfem-part.mp4"
+
+
+def test_a_temporary_name_stays_within_255_bytes_for_any_valid_name(tmp_path):
+    name = "é" * 123 + ".mp4"                       # 250 bytes
+    assert len(files.atomic_path(tmp_path / name).name.encode()) <= 255
+    with files.atomic_open(tmp_path / name) as f:
+        f.write("whole")
+    assert (tmp_path / name).read_text() == "whole"
 
 
 def test_an_out_folder_another_export_is_writing_into_is_refused(here):
@@ -114,7 +122,8 @@ def test_two_exports_at_once_never_claim_each_others_video(tmp_path):
     assert codes == [0, 2], results
     winner = next(frames for frames, (code, _, _) in results.items() if code == 0)
     loser_err = next(err for code, _, err in results.values() if code == 2)
-    assert "Traceback" not in loser_err and loser_err.startswith("error: ")
+    # Refused up front when the winner had claimed the name already, else when it finishes.
+    final_error_line(loser_err, "another run")
     assert video_frames(tmp_path / "v.mp4") == winner
     assert not list(tmp_path.glob(".*part*"))
 
@@ -176,7 +185,7 @@ def disk_filling_after(monkeypatch, room, suffix):
 def test_a_full_disk_keeps_the_complete_rows(here, monkeypatch):
     code, out, err = run("simulate", "cube", "--steps", "1", "--stats", "one.jsonl")
     row = len((here / "one.jsonl").read_text())
-    disk_filling_after(monkeypatch, int(2.5 * row), ".part")
+    disk_filling_after(monkeypatch, int(2.5 * row), ".softfem-part")
     code, out, err = run("simulate", "cube", "--steps", "5", "--stats", "s.jsonl")
     assert code == 2
     one_error_line(err, "s.jsonl", "no space left on device", "kept the 2 complete rows")
@@ -216,6 +225,64 @@ def tiny_disk(tmp_path):
     subprocess.run(["umount", str(disk)], check=True)
 
 
+def export_onto(disk, *argv):
+    return subprocess.run([sys.executable, str(ROOT / "main.py"), "export", "cube", *argv], cwd=disk.parent,
+                          capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.parametrize("video", ["v.mp4", "v.gif"])
+def test_a_video_on_a_full_disk_is_not_put_in_place(tiny_disk, video):
+    """The encoder's file is checked before it is renamed: ffmpeg leaves an MP4 with no index
+    ("moov atom not found") on a full disk and still exits, Pillow an ENOSPC."""
+    run = export_onto(tiny_disk, "--frames", "40", "--size", "640x480", "--out", "o",
+                      "--video", str(tiny_disk / video))
+    assert run.returncode == 2, run.stderr
+    final_error_line(run.stderr, f"{video}: no space left on device", "the video was not written")
+    assert "kept the 40 complete frames in o" in run.stderr
+    assert list(tiny_disk.iterdir()) == []
+
+
+def test_frames_and_video_on_one_full_disk_keep_the_frames_and_no_broken_video(tiny_disk):
+    run = export_onto(tiny_disk, "--frames", "40", "--size", "640x480", "--out", str(tiny_disk / "o"),
+                      "--video", str(tiny_disk / "v.mp4"))
+    assert run.returncode == 2, run.stderr
+    line = final_error_line(run.stderr, "no space left on device")
+    kept = sorted((tiny_disk / "o").iterdir())
+    assert kept and f"kept the {len(kept)} complete frames" in line
+    for path in kept:
+        imageio.v2.imread(path)                    # each one whole
+    if (tiny_disk / "v.mp4").exists():            # the encoder finished it on the frames kept
+        assert video_frames(tiny_disk / "v.mp4") == len(kept) and f"v.mp4 holds them ({len(kept)} frames)" in line
+    else:
+        assert "the video was not written" in line
+    assert sorted(p.name for p in tiny_disk.iterdir()) in (["o"], ["o", "v.mp4"])
+
+
+def test_a_dangling_link_as_stats_is_an_existing_file(here):
+    os.symlink("gone.jsonl", here / "s.jsonl")
+    code, out, err = run("simulate", "cube", "--steps", "1", "--stats", "s.jsonl")
+    assert code == 2
+    one_error_line(err, "s.jsonl: is a link to gone.jsonl, which does not exist", "--overwrite")
+    code, out, err = run("simulate", "cube", "--steps", "1", "--stats", "s.jsonl", "--overwrite")
+    assert code == 0, err
+    assert not (here / "s.jsonl").is_symlink() and (here / "s.jsonl").read_text().count("\n") == 1
+
+
+def test_a_video_another_running_export_writes_is_refused_before_any_work(here):
+    (here / f".v.mp4.{os.getppid()}.softfem-part.mp4").write_bytes(b"being written")   # a live process's
+    code, out, err = run(*SMALL_EXPORT, "--out", "o", "--video", "v.mp4")
+    assert code == 2
+    one_error_line(err, f"--video v.mp4: another run (process {os.getppid()}) is writing this file")
+    assert sorted(p.name for p in here.iterdir()) == [f".v.mp4.{os.getppid()}.softfem-part.mp4"]
+
+
+def test_a_video_named_as_the_out_folder_is_refused(here):
+    code, out, err = run(*SMALL_EXPORT, "--out", "x.mp4", "--video", "x.mp4")
+    assert code == 2
+    one_error_line(err, "--video x.mp4: is also the --out folder")
+    assert list(here.iterdir()) == []
+
+
 def test_a_real_full_disk_keeps_the_rows_written(tiny_disk):
     run = subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", "cube", "--steps", "400",
                           "--stats", str(tiny_disk / "s.jsonl")], capture_output=True, text=True, timeout=600)
@@ -232,15 +299,35 @@ def test_a_real_full_disk_keeps_the_rows_written(tiny_disk):
 def test_a_killed_runs_temporary_files_are_removed_and_do_not_block(here):
     pid = dead_pid()
     (here / "o").mkdir()
-    (here / "o" / f".frame_00000.png.{pid}.k2j4h1.part").write_bytes(b"half a frame")
-    (here / f".s.jsonl.{pid}.ab12cd.part").write_text('{"step": 1}\n')
-    (here / f".s.jsonl.{os.getpid()}.live.part").write_text("a run still going")
-    code, out, err = run(*SMALL_EXPORT, "--out", "o")
+    (here / "o" / f".frame_00000.png.{pid}.k2j4h1.softfem-part").write_bytes(b"half a frame")
+    (here / f".s.jsonl.{pid}.ab12cd.softfem-part").write_text('{"step": 1}\n')
+    (here / f".s.jsonl.{os.getpid()}.live.softfem-part").write_text("a run still going")
+    (here / f".v.mp4.{pid}.softfem-part.mp4").write_bytes(b"a killed export's video")
+    code, out, err = run(*SMALL_EXPORT, "--out", "o", "--video", "v.mp4")
     assert code == 0, err
     assert sorted(p.name for p in (here / "o").iterdir()) == [f"frame_0000{i}.png" for i in range(3)]
     code, out, err = run("simulate", "cube", "--steps", "1", "--stats", "s.jsonl")
     assert code == 0, err
-    assert sorted(p.name for p in here.iterdir()) == [f".s.jsonl.{os.getpid()}.live.part", "o", "s.jsonl"]
+    assert sorted(p.name for p in here.iterdir()) == [f".s.jsonl.{os.getpid()}.live.softfem-part", "o",
+                                                      "s.jsonl", "v.mp4"]
+
+
+USERS_OWN = [".thesis.2023.part", ".draft.v2.31337.part.txt", ".x.99999999999999999999.part",
+             ".x.99999999999999999999.softfem-part", ".frame_00000.png.31337.k2j4h1.part"]
+
+
+def test_a_users_files_shaped_like_temporary_ones_are_never_removed(here):
+    """Only names with this program's marker are a killed run's: a user's `.NAME.NUMBER.part`
+    (or a process id no system has) is the user's, kept and counted as the folder's content."""
+    (here / "d").mkdir()
+    for name in USERS_OWN:
+        (here / "d" / name).write_text("notes")
+    code, out, err = run(*SMALL_EXPORT, "--out", "d")
+    assert code == 2
+    one_error_line(err, "d", "folder is not empty")
+    code, out, err = run(*SMALL_EXPORT, "--out", "d", "--overwrite")
+    assert code == 0, err
+    assert all((here / "d" / name).read_text() == "notes" for name in USERS_OWN)
 
 
 # ---------------------------------------------------------------- signals and pipes
@@ -254,7 +341,7 @@ def test_two_sigterms_a_few_ms_apart_still_exit_130(tmp_path):
     process = start(["simulate", "cube86", "--steps", "100000", "--stats", "s.jsonl"], tmp_path,
                     stdout=subprocess.PIPE)
     end = time.monotonic() + 120
-    while not any(p.stat().st_size for p in tmp_path.glob(".s.jsonl.*.part")) and time.monotonic() < end:
+    while not any(p.stat().st_size for p in tmp_path.glob(".s.jsonl.*.softfem-part")) and time.monotonic() < end:
         time.sleep(0.05)
     for _ in range(3):
         process.send_signal(signal.SIGTERM)
@@ -300,7 +387,7 @@ def test_an_interrupted_overwriting_export_says_which_frames_are_older(here, mon
 def handlers_kept():
     """A real signal leaves SIGTERM and SIGINT ignored after the run (its clean-up must not be
     cut short); put this test process's own handlers back."""
-    kept = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    kept = {s: signal.getsignal(s) for s in files.STOP_SIGNALS}
     yield
     for number, handler in kept.items():
         signal.signal(number, handler)
@@ -338,3 +425,12 @@ def test_a_deferred_signal_goes_to_the_handler_that_was_in_place(handlers_kept):
             reached.append("after it")
     assert reached == ["end of the deferred block"]
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+
+
+def test_a_folder_removed_during_the_run_is_one_error(tmp_path):
+    import shutil
+    with pytest.raises(FemError, match=r"s\.jsonl: its folder was removed while this run wrote into it"):
+        with files.atomic_open(tmp_path / "d" / "s.jsonl") as f:
+            f.write("row\n")
+            shutil.rmtree(tmp_path / "d")
+    assert list(tmp_path.iterdir()) == []

@@ -279,3 +279,15 @@ def test_strain_scale_grows_to_the_scene_and_never_shrinks():
     coloring.colors(sim)
     assert coloring.vmax == nice_ceiling(np.percentile([10.0 * start, 730.0 * start], 99))
     assert [nice_ceiling(v) for v in (1.0, 1.5, 3.3, 7.0, 0.0123)] == pytest.approx([1, 2, 5, 10, 0.02])
+
+
+@pytest.mark.parametrize("eye", [[0.0, 5.0, 0.0], [0.0, -5.0, 0.0]], ids=["top-down", "bottom-up"])
+def test_a_camera_looking_along_up_still_sees(eye):
+    """A scene's camera straight above its target (eye - target parallel to up) drew blank frames:
+    its basis was 0 / 0. It now shows the x axis across the picture."""
+    camera = Camera(eye=eye, target=[0.0, 0.0, 0.0])
+    right, true_up, forward = camera.basis()
+    assert np.allclose(np.array([right, true_up, forward]) @ np.array([right, true_up, forward]).T, np.eye(3))
+    clip = camera.view_proj(1.0) @ np.array([[0, 0, 0, 1], [1, 0, 0, 1]], float).T
+    ndc = (clip[:2] / clip[3]).T
+    assert np.allclose(ndc[0], 0) and abs(ndc[1][0]) > 0.1 and abs(ndc[1][1]) < 1e-9

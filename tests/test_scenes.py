@@ -104,3 +104,12 @@ def test_side_by_side_starts_each_copy_as_the_scene_starts(f64, name):
     np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-12)
     assert shift[0, 0] > 0
     np.testing.assert_allclose(shift[0, 1:], 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e300, 1e-200], ids=["unit", "1e300", "1e-200"])
+def test_a_quaternion_of_any_finite_size_rotates_the_same(scale):
+    """(1e300, 0, 0, 1e300) overflowed its norm, and the body was silently placed unrotated."""
+    from fem.scene import quaternion_matrix
+    quarter_turn_about_x = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
+    np.testing.assert_allclose(quaternion_matrix(np.array([1.0, 1.0, 0.0, 0.0]) * scale), quarter_turn_about_x,
+                               atol=1e-12)

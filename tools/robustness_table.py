@@ -147,7 +147,7 @@ PROCESS_CLASSES = [
      "other files are left, and a note says so", "test_outputs.py"),
     ("full disk (a 64 kB tmpfs, and a writer raising ENOSPC)", "exit 2, `PATH: no space left on device; kept the "
      "N complete rows` (or frames, and the video closed on them)", "test_outputs.py"),
-    ("a killed run's `.NAME.PID.xxxx.part` files", "removed by the next run into the folder (their process is "
+    ("a killed run's `.NAME.PID.xxxx.softfem-part` files", "removed by the next run into the folder (their process is "
      "gone); they never make a folder count as non-empty", "test_outputs.py"),
     ("two or three SIGTERMs 5 ms apart", "exit 130, complete rows kept; later signals are ignored",
      "test_outputs.py"),

@@ -14,6 +14,9 @@ COLOURS = {   # (method, step, integrator)
     ("corotational", "newton", "trapezoidal"): "tab:green", ("corotational", "single", "trapezoidal"): "tab:olive"}
 MARKERS = {"backward-euler": "o-", "bdf2": "v-", "trapezoidal": "P-"}   # the dt axis of each integrator
 LEGEND_INCHES = 1.2   # below the plots
+# A point label's room, in points (6 pt text): labels closer than this are stacked upwards, as
+# the points of several series at one dt, or one tolerance, fall on top of each other.
+LABEL_WIDTH, LABEL_HEIGHT = 24.0, 7.0
 
 
 def series(scene):
@@ -60,12 +63,12 @@ def plot(results, file):
     fig, axes = plt.subplots(rows, cols, figsize=(max(6 * cols, 11), height), squeeze=False)
     for ax, s in zip(axes.ravel(), scenes):
         lowest = min(s["reference_floor"], ERROR_GOAL)
+        labels = []
         for (legend, colour, style), points in series(s).items():
-            xs, ys, labels = zip(*points)
+            xs, ys, _ = zip(*points)
             lowest = min(lowest, *ys)
             ax.plot(xs, ys, style, color=colour, alpha=0.85, ms=5, label=legend)
-            for x, y, label in points:
-                ax.annotate(label, (x, y), fontsize=6, color=colour, textcoords="offset points", xytext=(3, 3))
+            labels += [(x, y, label, colour) for x, y, label in points]
         ax.axhline(ERROR_GOAL, color="green", lw=1, ls=":", label=f"the goal: {100 * ERROR_GOAL:g} % of the scene size")
         ax.axhspan(1e-12, s["reference_floor"], color="grey", alpha=0.15, lw=0,
                    label="below the reference's own error (estimate)")
@@ -80,6 +83,7 @@ def plot(results, file):
         ax.set_xlabel("wall time per simulated second (s)")
         ax.set_ylabel(f"position error at t = {s['checkpoints'][-1]:g} s")
         ax.grid(True, which="major", alpha=0.3)
+        place_labels(ax, labels)
     for ax in axes.ravel()[len(scenes):]:
         ax.axis("off")
     handles, labels = axes[0, 0].get_legend_handles_labels()
@@ -87,8 +91,27 @@ def plot(results, file):
     m = results["machine"]
     fig.suptitle("Position error (RMS distance to the reference / bounding-box diagonal) against wall time per "
                  f"simulated second; {m['backend']} {m['precision']}, {m['cores']} cores\n"
-                 "points: dt, PCG tolerance, Jacobi iterations; backward Euler unless marked BDF2 (log-log: down and "
-                 "left is better)", fontsize=9)
+                 "points: dt, PCG tolerance, Jacobi iterations; backward Euler unless marked BDF2 or trapezoidal "
+                 "(log-log: down and left is better)", fontsize=9)
     fig.tight_layout(rect=(0, LEGEND_INCHES / height, 1, 1))
     fig.savefig(file, format="png", dpi=110)
     plt.close(fig)
+
+
+def place_labels(ax, labels):
+    """Write each (x, y, text, colour) of labels beside its point, lifted above the labels
+    already placed where it would overlap them; returns the offsets used, in points."""
+    ax.get_xlim(), ax.get_ylim()          # the limits now final: positions below are the drawn ones
+    to_points = 72.0 / ax.figure.dpi
+    placed, offsets = [], []
+    for x, y, text, colour in labels:
+        if not text:
+            continue
+        px, py = ax.transData.transform((x, y)) * to_points
+        lift = 0.0
+        while any(abs(px - qx) < LABEL_WIDTH and abs(py + lift - qy) < LABEL_HEIGHT for qx, qy in placed):
+            lift += LABEL_HEIGHT
+        placed.append((px, py + lift))
+        offsets.append((3.0, 3.0 + lift))
+        ax.annotate(text, (x, y), fontsize=6, color=colour, textcoords="offset points", xytext=offsets[-1])
+    return offsets

@@ -24,7 +24,7 @@ Nothing is lost: a non-empty --out folder or an existing --video file is
 refused without --overwrite, and every file is written under a temporary
 name and renamed when complete. --overwrite replaces frame_00000.png ..
 frame_{N-1}.png and the video; nothing else in the folder is touched (older
-frames numbered N and above are left, and the summary says so). A folder
+frames numbered N and above are left, and the summary says so). A folder, or a video,
 another export is writing into is refused. An interrupted export (Ctrl-C,
 SIGTERM) or one stopped by a full disk keeps the frames written so far and
 closes the video on them, and says so.
@@ -39,8 +39,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import imageio.v2
-import imageio.v3
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
@@ -49,19 +47,18 @@ import scenes
 from app import EXIT_INTERRUPTED, device
 from app import outputs
 from app.commands.simulate import Tally, check_rejected
-from app.files import atomic_open, atomic_path, interrupts_deferred, refuse_overwrite
+from app.files import atomic_open, claim, interrupts_deferred, refuse_overwrite
 from app.progress import Progress
 from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
 from app.render.factory import make_renderer
 from app.render.overlay import PANEL_COLOR, TEXT_COLOR, draw_text_overlay
+from app.video import MACRO_BLOCK, VIDEO_FPS, VideoFailed, VideoWriter
 from fem.errors import SizeLimitError
 
 FRAME_NAME = "frame_{:05d}.png"
 FRAME_PATTERN = re.compile(r"frame_(\d{5})\.png")
 VIDEO_SUFFIXES = (".mp4", ".gif")
-# H.264 codes 16 x 16 pixel blocks: ffmpeg would resize any other frame size.
-MACRO_BLOCK = 16
 # Frames larger than this a side are refused unless --allow-large: 8K video is 7680 wide,
 # and a 100000 x 100000 frame (30 GB) is a typo.
 MAX_SIDE = 8192
@@ -104,9 +101,20 @@ def run(args) -> int:
     video = Path(args.video) if args.video else None
     check_arguments(args, out, video)
     refuse_overwrite(out, args.overwrite)
-    if video is not None:
-        refuse_overwrite(video, args.overwrite)
+    if video is None:
+        return simulate_and_write(args, out, video, width, height)
+    refuse_overwrite(video, args.overwrite)
+    outputs.remove_stale_temporaries(video.parent, video.name)     # a killed export's video
+    claimed = claim(video, "--video")
+    try:
+        return simulate_and_write(args, out, video, width, height)
+    finally:
+        with contextlib.suppress(FileNotFoundError):       # gone already where the video was put in place
+            os.unlink(claimed)
 
+
+def simulate_and_write(args, out: Path, video: Path | None, width: int, height: int) -> int:
+    """Build the simulation and the view, then write the frames into the locked folder out."""
     device.start(args)
     scene = scenes.load_scene(args.scene, overrides=args.set)
     sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
@@ -115,6 +123,8 @@ def run(args) -> int:
                          integrator=args.integrator)
     steps = steps_per_frame(args.steps_per_frame, args.fps or TARGET_FPS, args.speed, sim.settings.dt)
     fps = args.fps or video_rate(steps, sim.settings.dt, args.speed)
+    if video is not None:
+        check_video_rate(video, fps, args.fps is not None)
     view = View(sim, scene, args.compare, args.color, args.renderer, width, height)
 
     out.mkdir(parents=True, exist_ok=True)
@@ -143,13 +153,15 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
                 rendered = time.perf_counter()
 
                 lines = view.caption + [f"t = {sim.t:.2f} s ({steps} steps/frame)"]
-                with interrupts_deferred():      # the file in place and the count move together
+                speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
+                # The PNG, the video's frame and the count move together: an interruption
+                # leaves as many frames in the video as PNG files.
+                with interrupts_deferred():
                     write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines),
                               f"kept the {index} complete frames before it")
                     written = index + 1
-                if writer.active:
-                    speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
-                    writer.append(view.annotated(picture, lines + [speed]))
+                    if writer.active:
+                        writer.append(view.annotated(picture, lines + [speed]))
 
                 timings["simulation"].append(1e3 * (simulated - start))
                 timings["rendering"].append(1e3 * (rendered - simulated))
@@ -164,6 +176,12 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
         earlier = f"; {names} older, not from this export" if older else ""
         print(f"interrupted at frame {written} of {args.frames}: {kept}{also}{earlier}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except VideoFailed as error:
+        kept = f"kept the {written} complete frames in {out}" if written else "no frame was complete"
+        raise fem.FemError(f"{error}; {kept}") from None
+    except fem.FemError as error:           # a frame could not be written: the video closed on the others
+        also = f"; {video} holds them ({writer.frames} frames)" if writer.placed else ""
+        raise fem.FemError(f"{error}{also}") from None
     print(summary(timings, steps, view.renderer.name))
     if video is not None:
         print(f"the video plays at {fps:.4g} frames per second: "
@@ -252,6 +270,18 @@ def check_arguments(args, out: Path, video: Path | None):
         raise fem.FemError(f"--video {video}: use a .mp4 (H.264) or .gif file name")
     if video is not None and outputs.is_special(video):
         raise fem.FemError(f"--video {video}: not a regular file (a device or a pipe); give a file name")
+    if video is not None and video.absolute() == out.absolute():
+        raise fem.FemError(f"--video {video}: is also the --out folder; give the video another name")
+
+
+def check_video_rate(video: Path, fps: float, asked: bool):
+    """FemError unless a video can play at fps frames per second (--fps if asked, else what
+    --speed makes it)."""
+    low, high = VIDEO_FPS[video.suffix.lower()]
+    if not low <= fps <= high:
+        why = f"--fps {fps:g}" if asked else f"--speed: the video would play at {fps:.3g} frames per second"
+        raise fem.FemError(f"{why}; a {video.suffix.lower()} video plays at {low:g} to {high:g} frames "
+                           "per second (--fps, --speed and --steps-per-frame set it)")
 
 
 def steps_per_frame(requested: int | None, fps: float, speed: float, dt: float) -> int:
@@ -381,61 +411,6 @@ def older_frames(folder: Path, count: int) -> list[str]:
     names = [path.name for path in folder.iterdir() if (match := FRAME_PATTERN.fullmatch(path.name))
              and int(match[1]) >= count]
     return sorted(names)
-
-
-class VideoWriter:
-    """Appends frames to an MP4 (H.264, yuv420p) or GIF written under a temporary
-    name; leaving the `with` block normally, or by an interruption (Ctrl-C, SIGTERM)
-    after some frames, renames it into place; any other exception removes it.
-    With path None it does nothing (active is False)."""
-
-    def __init__(self, path: Path | None, fps: float, overwrite: bool = True):
-        self.path, self.fps, self.overwrite = path, fps, overwrite
-        self.active = path is not None
-        self.temporary = atomic_path(path) if self.active else None
-        self.writer = None
-        self.frames = 0
-
-    def __enter__(self):
-        if not self.active:
-            return self
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.suffix.lower() == ".mp4":
-            self.writer = imageio.v2.get_writer(
-                self.temporary, format="FFMPEG", mode="I", fps=self.fps, codec="libx264",
-                pixelformat="yuv420p", quality=8, macro_block_size=MACRO_BLOCK,
-                ffmpeg_log_level="error")
-        else:
-            self.writer = imageio.v3.imopen(self.temporary, "w", plugin="pillow")
-        return self
-
-    def append(self, image: np.ndarray):
-        """Add one frame, (H, W, 3) uint8, every frame the same size."""
-        with interrupts_deferred():
-            if self.path.suffix.lower() == ".mp4":
-                self.writer.append_data(image)
-            else:
-                # GIF delays are whole hundredths of a second; loop=0 repeats forever.
-                self.writer.write(image, duration=1000.0 / self.fps, loop=0)
-            self.frames += 1
-
-    def __exit__(self, kind, error, traceback):
-        if not self.active:
-            return False
-        # Interrupted, the video keeps the frames it has, as the PNGs do.
-        keep = kind is None or (issubclass(kind, (KeyboardInterrupt, fem.FemError)) and self.frames > 0)
-        try:
-            if keep:
-                with interrupts_deferred():
-                    self.writer.close()
-                    outputs.put_in_place(self.temporary, self.path, self.overwrite)
-            else:
-                with contextlib.suppress(Exception):   # a half-written video is discarded anyway
-                    self.writer.close()
-        finally:
-            with contextlib.suppress(OSError):
-                os.unlink(self.temporary)
-        return False
 
 
 def summary(timings: dict, steps: int, renderer: str) -> str:

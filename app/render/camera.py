@@ -39,6 +39,8 @@ class Camera:
         forward = self.target - self.eye
         forward /= np.linalg.norm(forward)
         right = np.cross(forward, self.up)
+        if np.linalg.norm(right) < 1e-6:      # looking straight along up (top-down): screen up is -z
+            right = np.cross(forward, [0.0, 0.0, -1.0])
         right /= np.linalg.norm(right)
         return right, np.cross(right, forward), forward
 

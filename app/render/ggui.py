@@ -53,7 +53,7 @@ class GGUIRenderer(Renderer):
         self.buffers.upload(frame)
         self.camera.position(*camera.eye)
         self.camera.lookat(*camera.target)
-        self.camera.up(*camera.up)
+        self.camera.up(*camera.basis()[1])       # the screen's up: defined for a top-down camera too
         self.camera.fov(camera.fov_deg)
         self.camera.z_near(camera.near)
         self.camera.z_far(camera.far)
