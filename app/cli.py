@@ -159,6 +159,9 @@ def build_parser(prog="main.py"):
     p.add_argument("--stats", metavar="FILE.jsonl",
                    help="one JSON object per step ('-': to stdout, and the summary to stderr)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing stats file")
+    p.add_argument("--profile", action="store_true",
+                   help="after the run, a table of where the steps' time went, kernel by kernel "
+                        "(Taichi's kernel profiler; the first step is left out)")
 
     p = sub.add_parser("export", help="render frames (PNG) and a video without a display")
     add_scene_options(p, scene_required=False)
