@@ -141,7 +141,7 @@ def add_scene_options(p, scene_required=True):
                    help="override a scene value, e.g. --set body.soft.mesh.cells=[8,8,8]; "
                         "file paths in it are relative to the current folder")
     p.add_argument("--allow-large", action="store_true",
-                   help="lift the size limits (a million tets per body, 8192 pixels a side)")
+                   help="lift the size limits (the tets half the backend's memory holds, 8192 pixels a side)")
     add_common(p)
 
 
@@ -336,11 +336,8 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.error(f"no command given; commands: {', '.join(commands)}")
 
-    from fem import limits, mesh
-    limit = mesh.MAX_TETS
+    from fem import limits
     try:
-        if getattr(args, "allow_large", False):
-            mesh.MAX_TETS = None
         with interrupt_on_sigterm(), limits.lifted(getattr(args, "allow_large", False)):
             return dispatch(args, parser)
     except FemError as e:
@@ -360,5 +357,3 @@ def main(argv=None) -> int:
             raise
         print(f"error: {e.filename}: file name too long", file=sys.stderr)
         return EXIT_BAD_INPUT
-    finally:
-        mesh.MAX_TETS = limit
