@@ -15,10 +15,16 @@ The profiler waits for every task to end before the next starts, so a profiled s
 somewhat slower than a plain one: read the shares, not the absolute times.
 """
 
+import dataclasses
 import re
+import statistics
 
 import taichi as ti
 
+# The steps the issue-36 measurements compare: the one-solve step (backward Euler, one PCG
+# solve) and the default (trapezoidal, Newton). Settings changed from the scene's.
+STEP_KINDS = {"one-solve": {"step": "single", "integrator": "backward-euler"},
+              "default": {"step": "newton", "integrator": "auto"}}
 # A task's name: "<kernel>_c<id>_<n>_kernel_<task>_<kind>" (Taichi 1.7).
 TASK_NAME = re.compile(r"^(?P<kernel>.+?)_c\d+_\d+_kernel_(?P<task>\d+)_")
 
@@ -101,3 +107,20 @@ def _bytes(count):
 
 def _figure(value, spec):
     return "n/a" if value is None else format(value, spec)
+
+
+def profile_steps(sim, kind, warmup, steps):
+    """{"rows", "ms_median", "steps", "tets"}: the kernel table of `steps` steps of the STEP_KINDS
+    `kind`, from the scene's start after `warmup` steps (Taichi running with its profiler on)."""
+    sim.reset()
+    sim.settings = dataclasses.replace(sim.settings, **STEP_KINDS[kind])
+    for _ in range(warmup):
+        sim.step()
+    restart()
+    ms = []
+    for _ in range(steps):
+        sim.step()
+        ms.append(sim.last["wall_ms"])
+    median = statistics.median(ms)
+    return {"rows": rows(kernels(), steps, steps * median), "ms_median": median, "steps": steps,
+            "tets": sim.model.n_tets}

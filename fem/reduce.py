@@ -16,6 +16,12 @@ neighbouring threads read neighbouring items (coalesced loads). Where loops run 
 thread (small meshes on the CPU, fem/runtime.serial_loops) a segment is one chunk: the adds
 of a plain loop, in its order.
 
+A sum into one number (PCG's dot products r.z, p.Ap, a weighted |r|^2: `s += ...` on a kernel's
+local in a parallel loop) needs none of this: Taichi's thread-local pass already gives every
+thread its own partial and adds the partials once per thread at the loop's end (seen in its
+IR: "tls prologue" / "tls epilogue"). What it cannot do is a sum whose target moves with the
+item, `out[body[i]] += ...`: that is what this module is for.
+
 Use: make a `SegmentSums` beside the fields it sums, `load` the segments' starts (a new
 scene), and call `reduce(value, store, data)` inside a kernel, with two ti.funcs of the
 caller: `value(j, s, data)`, item j's contribution to segment s (a ti.Vector of `width`;

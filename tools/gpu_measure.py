@@ -39,8 +39,7 @@ SIZES = (17, 27, 46, 58)             # 2k x k x k cells: 49k, 197k, 973k, 2M tet
 QUICK_SIZES = (3, 4, 5, 6)
 PROFILED = (0, 2)                    # which sizes get a kernel table: box50k and the 973k box
 WARMUP = 3                           # steps before timing: compiling, first touches
-STEPS = {"one-solve": {"step": "single", "integrator": "backward-euler"},
-         "default": {"step": "newton", "integrator": "auto"}}
+STEPS = profile.STEP_KINDS
 # Peak DRAM bandwidth, GB/s, by a part of the device's name (vendors' data sheets).
 PEAK_GB_S = {"H200": 4800, "H100 80GB HBM3": 3350, "H100 PCIe": 2000, "H100 NVL": 3900, "A100-SXM4-80GB": 2039}
 
@@ -78,24 +77,10 @@ def time_case(k, steps):
 
 
 def profile_case(k, steps):
-    """{kind: {"rows", "ms_median", "steps"}}: the kernel table of each step kind of the box with k
-    (Taichi must run with its profiler on)."""
+    """{kind: the kernel table (app/profile.profile_steps)} of the box with k (Taichi must run
+    with its profiler on)."""
     sim = box_simulation(k)
-    out = {}
-    for kind in STEPS:
-        sim.reset()
-        sim.settings = dataclasses.replace(sim.settings, **STEPS[kind])
-        for _ in range(WARMUP):
-            sim.step()
-        profile.restart()
-        ms = []
-        for _ in range(steps):
-            sim.step()
-            ms.append(sim.last["wall_ms"])
-        median = statistics.median(ms)
-        out[kind] = {"rows": profile.rows(profile.kernels(), steps, steps * median), "ms_median": median,
-                     "steps": steps, "tets": sim.model.n_tets}
-    return out
+    return {kind: profile.profile_steps(sim, kind, WARMUP, steps) for kind in STEPS}
 
 
 def bandwidth(rows, device_name):
