@@ -110,17 +110,29 @@ def _figure(value, spec):
 
 
 def profile_steps(sim, kind, warmup, steps):
-    """{"rows", "ms_median", "steps", "tets"}: the kernel table of `steps` steps of the STEP_KINDS
-    `kind`, from the scene's start after `warmup` steps (Taichi running with its profiler on)."""
+    """{"rows", "ms_median", "steps", "tets", "cg_iterations"}: the kernel table of `steps` steps
+    of the STEP_KINDS `kind`, from the scene's start after `warmup` steps, and the PCG iterations
+    they took (Taichi running with its profiler on)."""
     sim.reset()
     sim.settings = dataclasses.replace(sim.settings, **STEP_KINDS[kind])
     for _ in range(warmup):
         sim.step()
     restart()
-    ms = []
+    ms, iterations = [], 0
     for _ in range(steps):
         sim.step()
         ms.append(sim.last["wall_ms"])
+        iterations += sim.last["solver_iters"]
     median = statistics.median(ms)
     return {"rows": rows(kernels(), steps, steps * median), "ms_median": median, "steps": steps,
-            "tets": sim.model.n_tets}
+            "tets": sim.model.n_tets, "cg_iterations": iterations}
+
+
+def launches_note(table):
+    """One line: device tasks per step, and per PCG iteration those of the PCG kernels
+    (cg_iterations runs CG_UNROLL iterations a launch; start_residual once a solve)."""
+    per_step = sum(r["tasks"] for r in table["rows"]) / table["steps"]
+    cg = sum(r["tasks"] for r in table["rows"] if r["kernel"] == "cg_iterations")
+    iterations = table["cg_iterations"]
+    return (f"{per_step:.0f} device tasks a step; {iterations / table['steps']:.1f} PCG iterations a step, "
+            f"cg_iterations {cg / iterations if iterations else 0:.1f} tasks an iteration")

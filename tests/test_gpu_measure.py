@@ -29,3 +29,4 @@ def test_gpu_measure_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     assert text.count("| one-solve |") == 4 and text.count("| default |") == 4
     assert text.count("## Kernel profile") == 4
     assert "n/a (bytes need CUPTI" in text
+    assert text.count("Launches: ") == 4 and "tasks an iteration" in text

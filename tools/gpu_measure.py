@@ -119,6 +119,7 @@ def markdown(results):
                           f"{p['ms_median']:.2f} ms/step median with the profiler on){replays}", "",
                       profile.markdown(p["rows"], p["steps"], p["steps"] * p["ms_median"], top=25)]
             found = bandwidth(p["rows"], m["device"])
+            lines += ["", "Launches: " + profile.launches_note(p) + "."]
             lines += ["", "Achieved bandwidth over the step's kernels: " + (
                 "n/a (bytes need CUPTI, which this Taichi lacks)" if found is None else
                 f"{found[0]:.0f} GB/s" + (f", {100 * found[1]:.0f} % of the device's peak" if found[1] else ""))]
