@@ -6,9 +6,10 @@ A size (tets, bodies, bytes of a file, legs of a dome) over its limit is a
 such a description is more likely a slip than a wish, and would take the machine's
 whole memory before failing. The tet limit follows the machine: as many tets as
 MEMORY_SHARE of the backend's memory holds (the GPU's on CUDA, else the host's), at
-BYTES_PER_TET each; its message names the tets and the memory, asked and available. A number outside its range (E = 1e308, dt = 1e-300,
-a body placed 1e308 m away) is a plain FemError: no real scene needs it, and the
-squares and products of the step would overflow.
+BYTES_PER_TET each; its message names the tets and the memory, asked and available.
+A number outside its range (E = 1e308, dt = 1e-300, a body placed 1e308 m away) is a
+plain FemError: no real scene needs it, and the squares and products of the step
+would overflow.
 """
 
 import contextlib
