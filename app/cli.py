@@ -167,7 +167,7 @@ def add_scene_options(p, scene_required=True):
                    help="override a scene value, e.g. --set body.soft.mesh.cells=[8,8,8]; "
                         "file paths in it are relative to the current folder")
     p.add_argument("--allow-large", action="store_true",
-                   help="lift the size limits (a million tets per body, 8192 pixels a side)")
+                   help="lift the size limits (the tets half the backend's memory holds, 8192 pixels a side)")
     add_common(p)
 
 
@@ -185,6 +185,9 @@ def build_parser(prog="main.py"):
     p.add_argument("--stats", metavar="FILE.jsonl",
                    help="one JSON object per step ('-': to stdout, and the summary to stderr)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing stats file")
+    p.add_argument("--profile", action="store_true",
+                   help="after the run, a table of where the steps' time went, kernel by kernel "
+                        "(Taichi's kernel profiler; the first step is left out)")
 
     p = sub.add_parser("export", help="render frames (PNG) and a video without a display")
     add_scene_options(p, scene_required=False)
@@ -381,11 +384,8 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.error(f"no command given; commands: {', '.join(commands)}")
 
-    from fem import limits, mesh
-    limit = mesh.MAX_TETS
+    from fem import limits
     try:
-        if getattr(args, "allow_large", False):
-            mesh.MAX_TETS = None
         with interrupt_on_sigterm(), limits.lifted(getattr(args, "allow_large", False)):
             code = dispatch(args, parser)
             sys.stdout.flush()          # here, where a full disk or a closed pipe is caught
@@ -409,5 +409,3 @@ def main(argv=None) -> int:
             reader_gone()
         print(f"error: {outputs.write_failed(e.filename or 'standard output', e)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    finally:
-        mesh.MAX_TETS = limit

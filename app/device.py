@@ -26,7 +26,8 @@ def start(args) -> dict:
     """fem.init as the command line asks (--arch, --precision, --debug); unless the
     backend is the CPU by request, one line on stderr says which device was picked."""
     try:
-        backend = fem.init(args.arch, args.precision, debug=args.debug)
+        backend = fem.init(args.arch, args.precision, debug=args.debug,
+                           profile=getattr(args, "profile", False))
     except FemError:
         if args.arch != "gpu":
             raise

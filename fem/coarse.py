@@ -28,6 +28,7 @@ how many iterations a solve takes, never what it converges to.
 import numpy as np
 import taichi as ti
 
+from fem.reduce import SegmentSums
 from fem.rotation import newton_rotation, quaternion_matrix
 
 PATCH_VERTICES = 90      # vertices per patch, about (measured on box50k: 90 to 300 per patch, 128 to 32 patches)
@@ -151,6 +152,8 @@ class Patches:
 
     Fields (p patches in use of `capacity`):
         patch (n,), members (n,), start (p+1,)   vertex -> patch, and each patch's vertices
+            (members[start[a]:start[a+1]]: the patches are ranges of members, not of vertex
+            numbers, which stay the model's: outputs, pins and stats name vertices by them)
         centre (p, 3)              C_a, m
         spread_inverse (p, 3x3)    (sum m Y Y^T)^-1 of the patch at rest, 1/(kg m^2)
         rotates (p,)               1: R_a follows the body (corotational), 0: R_a = I
@@ -175,6 +178,7 @@ class Patches:
         self.g = ti.field(float, 6 * capacity)
         self.y = ti.field(float, 6 * capacity)
         self.count = ti.field(ti.i32, ())
+        self.sums = SegmentSums(n, capacity, 6, serial=serial)   # Q^T r, per patch
         self.key = None
 
     @staticmethod
@@ -201,6 +205,7 @@ class Patches:
         write(self.patch, patch)
         write(self.members, members)
         write(self.start, model.padded(start, cap + 1, np.int32, pad=start[-1]))
+        self.sums.load(start)
         write(self.centre, C)
         write(self.spread_inverse, np.linalg.pinv(spread))
         self.patch_body = model.vertex_body_np[members[start[:-1]]]   # the body of each patch
@@ -262,19 +267,23 @@ class Patches:
 
     @ti.func
     def restrict(self, r: ti.template(), on):
-        """g <- Q^T r: per patch, the sum of R_a^T r_i and of Y_i x R_a^T r_i (force and torque)."""
-        ti.loop_config(serialize=self.serial)
-        for a in range(self.count[None] * on):
-            force, torque = ti.Vector.zero(float, 3), ti.Vector.zero(float, 3)
-            Rt = self.frame[a].transpose()
-            for j in range(self.start[a], self.start[a + 1]):
-                i = self.members[j]
-                f = Rt @ r[i]
-                force += f
-                torque += (self.model.rest_positions[i] - self.centre[a]).cross(f)
-            for k in ti.static(range(3)):
-                self.g[6 * a + k] = force[k]
-                self.g[6 * a + 3 + k] = torque[k]
+        """g <- Q^T r: per patch, the sum of R_a^T r_i and of Y_i x R_a^T r_i (force and torque),
+        in two stages over the patch's members (fem/reduce.py): a patch of a large mesh has
+        thousands of vertices, too many for one thread."""
+        self.sums.reduce(self.moment, self.store_moment, r, on)
+
+    @ti.func
+    def moment(self, j, a, r: ti.template()):
+        """Member j's (R_a^T r_i, Y_i x R_a^T r_i), i = members[j], of patch a."""
+        i = self.members[j]
+        f = self.frame[a].transpose() @ r[i]
+        torque = (self.model.rest_positions[i] - self.centre[a]).cross(f)
+        return ti.Vector([f[0], f[1], f[2], torque[0], torque[1], torque[2]])
+
+    @ti.func
+    def store_moment(self, a, moment):
+        for k in ti.static(range(6)):
+            self.g[6 * a + k] = moment[k]
 
     @ti.func
     def solve(self, on):

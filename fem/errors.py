@@ -22,5 +22,6 @@ def excerpt(text, limit=60):
 
 
 class SizeLimitError(FemError):
-    """A mesh larger than `fem.mesh.MAX_TETS`: probably a typo in a resolution, which would
-    exhaust the memory. The command line adds how to lift the limit (--allow-large)."""
+    """A size over its limit (fem/limits.py), such as more tets than the memory holds: probably
+    a typo in a resolution, which would exhaust the memory. The command line adds how to lift
+    the limit (--allow-large)."""

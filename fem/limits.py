@@ -4,18 +4,30 @@ of physical numbers inside which the arithmetic stays finite.
 A size (tets, bodies, bytes of a file, legs of a dome) over its limit is a
 `SizeLimitError`, which `lifted()` (the command line's --allow-large) switches off:
 such a description is more likely a slip than a wish, and would take the machine's
-whole memory before failing. A number outside its range (E = 1e308, dt = 1e-300,
-a body placed 1e308 m away) is a plain FemError: no real scene needs it, and the
-squares and products of the step would overflow.
+whole memory before failing. The tet limit follows the machine: as many tets as
+MEMORY_SHARE of the backend's memory holds (the GPU's on CUDA, else the host's), at
+BYTES_PER_TET each; its message names the tets and the memory, asked and available.
+A number outside its range (E = 1e308, dt = 1e-300, a body placed 1e308 m away) is a
+plain FemError: no real scene needs it, and the squares and products of the step
+would overflow.
 """
 
 import contextlib
+import ctypes
+import ctypes.util
+import functools
+import os
 
+from fem import runtime
 from fem.errors import FemError, SizeLimitError
 
 # Sizes, each lifted by lifted().
 MAX_BODIES = 256             # the coarse preconditioner grows with the square of the body count
-MAX_SCENE_TETS = 2_000_000   # all bodies together (a comparison doubles a scene)
+# Bytes the engine keeps per tet (the mesh, the solver's fields, per-vertex ones shared out):
+# the process's memory over box meshes of 10k to 197k tets after two steps grows by 505 B/tet
+# in f32 and 768 in f64 (CPU, Taichi 1.7.4); a tenth more for what building a scene holds.
+BYTES_PER_TET = {"f32": 550, "f64": 850}
+MEMORY_SHARE = 0.5           # of the backend's memory, for the tets of one scene: the rest is the machine's
 MAX_FILE_BYTES = 256 * 2**20  # a mesh file; a million-tet MEDIT file is about 60 MB
 # A TOML scene file: the parser takes about 25 times a file's size in memory (a 240 MB file:
 # 6 GB, then MemoryError), and a scene names its meshes' files rather than holding them.
@@ -67,7 +79,63 @@ def check_body_count(count, where):
 
 
 def check_scene_tets(count, where):
-    check_size(count, MAX_SCENE_TETS, where, f"{count:,} tets in all bodies together")
+    check_tets(count, where, f"{count:,} tets in all bodies together", "in a scene")
+
+
+def check_tets(count, where, what, scope, limit=None):
+    """SizeLimitError naming `where` when `count` tets (`what`: how the count came about) pass
+    `limit` (default: tet_limit()), unless lifted. The message names the memory they need
+    and the memory the limit comes from."""
+    limit = tet_limit() if limit is None else limit
+    if _lifted or count <= limit:
+        return
+    size, name = memory()
+    raise SizeLimitError(f"{where}: {what} is more than the limit of {limit:,} tets {scope}: they need "
+                         f"about {gigabytes(count * bytes_per_tet())} of memory, and the limit is "
+                         f"{MEMORY_SHARE:.0%} of the {gigabytes(size)} of {name}")
+
+
+def tet_limit():
+    """The most tets a scene may have: as many as MEMORY_SHARE of memory() holds."""
+    return int(MEMORY_SHARE * memory()[0] / bytes_per_tet())
+
+
+def bytes_per_tet():
+    return BYTES_PER_TET[runtime.current().get("precision", "f32")]
+
+
+def memory():
+    """(bytes, name) of the memory the engine's fields live in: the GPU's on CUDA, the host's
+    otherwise (and on other GPU backends, which do not say: there it is only an upper bound)."""
+    if runtime.current().get("arch") == "cuda":
+        size = cuda_memory()
+        if size:
+            return size, "GPU memory (CUDA device 0)"
+    return host_memory(), "host memory"
+
+
+@functools.lru_cache(maxsize=None)
+def host_memory():
+    """Bytes of physical memory of this machine."""
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+@functools.lru_cache(maxsize=None)
+def cuda_memory():
+    """Bytes of memory of CUDA device 0 (the one Taichi uses), or None when the driver cannot say."""
+    try:
+        cuda = ctypes.CDLL(ctypes.util.find_library("cuda") or "libcuda.so.1")
+        device, size = ctypes.c_int(), ctypes.c_size_t()
+        if cuda.cuInit(0) or cuda.cuDeviceGet(ctypes.byref(device), 0) or \
+                cuda.cuDeviceTotalMem_v2(ctypes.byref(size), device):
+            return None
+        return size.value
+    except (OSError, AttributeError):
+        return None
+
+
+def gigabytes(count):
+    return f"{count / 1e9:,.1f} GB" if count >= 1e8 else f"{count / 1e6:,.0f} MB"
 
 
 def check_range(value, low, high, where, unit=""):

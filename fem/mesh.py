@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError, SizeLimitError, excerpt
+from fem import limits
+from fem.errors import FemError, excerpt
 
 
 @dataclass
@@ -42,12 +43,10 @@ OUTWARD_FACES = np.array([[1, 3, 2], [0, 2, 3], [0, 3, 1], [0, 1, 2]])
 # relative, so the test means the same for a mesh in millimetres or in metres.
 VOLUME_TOLERANCE = 1e-12
 
-# The most tets one mesh may have; None lifts the limit. The engine keeps about
-# BYTES_PER_TET bytes per tet, so a million tets take about 0.4 GB (and a second or
-# more per step on a laptop), while a slip in a resolution (cells = [200, 200, 200]:
-# 40 million tets) would take the machine's whole memory.
-MAX_TETS = 1_000_000
-BYTES_PER_TET = 350
+# The most tets one mesh may have; None: as many as the backend's memory holds
+# (fem.limits.tet_limit: half of it, at about 550 bytes a tet in f32). A slip in a resolution
+# (cells = [200, 200, 200]: 40 million tets) would otherwise take the machine's whole memory.
+MAX_TETS = None
 
 WRITE_FORMATS = {".mesh": "medit", ".msh": "gmsh", ".vtu": "vtu", ".vtk": "vtk"}
 MESHIO_READ_EXTENSIONS = (".msh", ".vtk", ".vtu", ".node", ".ele")
@@ -86,14 +85,11 @@ def dihedral_angles(vertices, tets):
 
 
 def check_tet_count(count, source, what=None):
-    """SizeLimitError naming `source` when a mesh of `count` tets would pass MAX_TETS.
+    """SizeLimitError naming `source` when a mesh of `count` tets would pass MAX_TETS, or the
+    memory's limit (fem.limits.check_tets); --allow-large (limits.lifted) lifts it.
 
     what: how the count came about, for the message (default "{count} tets")."""
-    if MAX_TETS is not None and count > MAX_TETS:
-        what = what or f"{count:,} tets"
-        raise SizeLimitError(f"{source}: {what} is more than the limit of {MAX_TETS:,} tets per mesh "
-                             f"(fem.mesh.MAX_TETS; this would take about "
-                             f"{count * BYTES_PER_TET / 1e9:,.3g} GB of memory)")
+    limits.check_tets(count, source, what or f"{count:,} tets", "per mesh", MAX_TETS)
 
 
 def prepare_mesh(vertices, tets, source, *, tet_lines=None):

@@ -22,9 +22,10 @@ PRECISIONS = ("f32", "f64")
 _current = {}
 
 
-def init(arch="cpu", precision="f32", debug=False, restart=False):
+def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False):
     """Start Taichi on `arch` ("cpu", "gpu" or "auto": a GPU backend when one exists, else CPU)
-    with `precision` ("f32" or "f64") as the float type of every field.
+    with `precision` ("f32" or "f64") as the float type of every field; `profile`: with Taichi's
+    kernel profiler on (every kernel is timed, and waited for: a little slower).
 
     Returns the backend's name. Calling it again with the same settings keeps Taichi
     running, with every kernel compiled so far (fem/pool.py); with other settings, or
@@ -37,7 +38,8 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
     # auto takes CUDA only: a Vulkan "GPU" may be Mesa's software driver, slower than the CPU backend.
     # gpu never probes OpenGL: on a machine without it, Taichi's probe ends the process (segfault).
     settings = (arch, precision, debug)
-    if not restart and _current.get("settings") == settings and _current.get("runtime") is ti.lang.impl.get_runtime():
+    running = _current.get("runtime") is ti.lang.impl.get_runtime()
+    if not restart and running and _current.get("settings") == settings and _current.get("profile") == profile:
         return _current["arch"]              # running as asked (and nobody called ti.init since)
     if environment.problems():
         raise FemError(environment.problems()[0])
@@ -54,11 +56,13 @@ def init(arch="cpu", precision="f32", debug=False, restart=False):
     where = {"offline_cache_file_path": cache} if cache else {}
     with contextlib.redirect_stdout(io.StringIO()), taichi_variables_reported():
         ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug, offline_cache=cache is not None,
-                offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR, **where)
+                offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR, kernel_profiler=profile,
+                **where)
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
-    _current.update(arch=backend, precision=precision, settings=settings, runtime=ti.lang.impl.get_runtime())
+    _current.update(arch=backend, precision=precision, settings=settings, profile=profile,
+                    runtime=ti.lang.impl.get_runtime())
     return backend
 
 

@@ -283,6 +283,20 @@ def test_bench_compares_the_preconditioners_and_the_stiff_bar(bench_output):
     assert "## Preconditioners" in md and "box80, E 1e+06 Pa, nu 0.4" in md and "stiff bar (box80" in md
 
 
+def test_bench_profiles_the_boxs_steps_kernel_by_kernel(bench_output):
+    profile = json.loads((bench_output / "results.json").read_text())["profile"]
+    assert profile["scene"] == "box80" and profile["tets"] == 80
+    for kind, table in profile["kinds"].items():
+        rows = {row["kernel"]: row for row in table["rows"]}
+        assert rows["cg_iterations"]["launches"] >= measure.PROFILE_STEPS, kind     # a solve a step at least
+        assert rows["extract_rotations"]["launches"] >= measure.PROFILE_STEPS, kind
+        assert sum(row["ms"] for row in rows.values()) > 0
+    assert "start_search" in {row["kernel"] for row in profile["kinds"]["default"]["rows"]}    # Newton's
+    assert "start_search" not in {row["kernel"] for row in profile["kinds"]["one-solve"]["rows"]}
+    md = (bench_output / "results.md").read_text()
+    assert "## Where a step's time goes" in md and "**one-solve step**" in md and "**default step**" in md
+
+
 def test_the_targets_table_gives_each_start_up_number_its_verdict():
     startup = {"warm_s": 2.5, "cold_s": 8.0, "second_s": 0.04, "beside_s": 6.0,
                "view_first_s": 1.6, "view_stepped_s": 3.2, "resting_ms": (0.05, 4.0)}

@@ -8,6 +8,7 @@ import scipy.sparse as sp
 from conftest import make_scene
 
 import fem
+import fem.reduce
 from app.bench.direct import DirectSolver
 from fem.coarse import Patches, coarse_matrices, patches, rigid_modes
 from fem.scene import Effects, Initial, Selection, SolverSettings
@@ -102,13 +103,21 @@ def preconditioner_reference(sim, r):
     return (jacobi + coarse) * free
 
 
-def test_preconditioner_is_symmetric_positive_definite_and_follows_the_body():
+@pytest.mark.parametrize("loops", ["serial", "parallel"])
+def test_preconditioner_is_symmetric_positive_definite_and_follows_the_body(loops, monkeypatch):
+    """Also with parallel loops and chunks of 16 members, so that the restriction's two-stage sums
+    (fem/reduce.py) split every patch into several chunks, as on a large mesh."""
+    if loops == "parallel":
+        monkeypatch.setattr(fem.runtime, "PARALLEL_MIN", {"tets": 0, "vertices": 0})
+        monkeypatch.setattr(fem.reduce, "CHUNK", 16)
     pinned = np.flatnonzero(cube(cells=6).vertices[:, 0] < -0.49)
     sim = fem.Simulation(bar(pinned=pinned))
     for _ in range(10):
         sim.step()
     frames = sim.solver.patches.frame.to_numpy()[:4]
     assert np.abs(frames - np.eye(3)).max() > 0.05            # the patches turned with the bar
+    if loops == "parallel":
+        assert not sim.solver.patches.serial and sim.solver.patches.sums.chunks[None] > 2 * sim.solver.patches.count[None]
     rng = np.random.default_rng(1)
     n = sim.model.n_vertices
     free = sim.model.free_np[:, None]

@@ -166,3 +166,30 @@ def test_allow_large_lifts_the_size_limits():
 
 def test_peak_memory_is_measured_in_kilobytes():
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss > 10_000      # this process, > 10 MB in kB
+
+
+# ---------------------------------------------------------------- the tet limit follows the memory
+
+def test_the_tet_limit_is_half_the_host_memory_at_the_bytes_a_tet_takes():
+    total = next(int(line.split()[1]) * 1024 for line in open("/proc/meminfo") if line.startswith("MemTotal"))
+    # MemTotal leaves out what the kernel reserves: within a few percent of the physical pages
+    assert limits.tet_limit() == pytest.approx(limits.MEMORY_SHARE * total / limits.BYTES_PER_TET["f32"],
+                                               rel=0.05)
+    assert limits.memory()[1] == "host memory"
+
+
+def test_a_box_over_the_memorys_limit_is_refused_naming_the_memory_then_built_knowingly(here, monkeypatch):
+    """With 40 MB of memory (20 MB for the tets: 36,363 at 550 bytes), box50k's 49,130 tets are
+    refused, naming the memory they need and the memory there is; --allow-large builds them."""
+    monkeypatch.setattr(limits, "host_memory", lambda: 40_000_000)
+    assert limits.tet_limit() == 36_363
+    box = str(ROOT / "examples" / "box50k.toml")
+    code, _, err = run("simulate", box, "--steps", "1")
+    assert code == 2
+    one_error_line(err, "49,130 tets", "limit of 36,363 tets per mesh", "need about 27 MB of memory",
+                   "50% of the 40 MB of host memory", "--allow-large lifts the limit")
+    code, out, err = run("simulate", box, "--steps", "1", "--set", "body.bar.mesh.cells=[20,10,10]")
+    assert code == 0, err                                      # 10,000 tets fit
+    code, out, err = run("simulate", box, "--steps", "1", "--allow-large")
+    assert code == 0, err
+    assert "49130 tets" in out

@@ -13,6 +13,7 @@ import contextlib
 import io
 import re
 import shlex
+import shutil
 from pathlib import Path
 
 import pytest
@@ -109,6 +110,7 @@ def test_the_readmes_show_commands():
 def clone(tmp_path_factory):
     """The folder a new user runs the commands in, with the files they would bring."""
     folder = tmp_path_factory.mktemp("fresh-clone")
+    shutil.copytree(ROOT / "examples", folder / "examples", ignore=shutil.ignore_patterns("*.py"))   # a clone's scene files
     trimesh.creation.icosphere(subdivisions=2, radius=40.0).export(folder / "my_shape.obj")
     statue = box(size=(40.0, 130.0, 30.0), cells=(2, 4, 2))
     write_tet_mesh(TetMesh(statue.vertices, statue.tets), folder / "fertility.mesh")

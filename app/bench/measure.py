@@ -13,6 +13,7 @@ import numpy as np
 import taichi as ti
 
 import fem
+from app import profile
 from app.bench import direct
 from app.bench.conclusions import final_error, observed_orders, reference_floor, reference_order
 from app.bench.plan import (BASELINE_TOLERANCE, MAX_ITERATIONS, MIN_TIMED_STEPS, REFERENCE_SETTINGS, REFERENCES,
@@ -257,3 +258,19 @@ def machine(backend, precision):
         except (OSError, subprocess.SubprocessError):
             pass
     return info
+
+
+PROFILE_STEPS = 20      # profiled steps of each kind
+PROFILE_WARMUP = 3      # steps before them: compiling, first touches
+
+
+def kernel_profile(ref, args, info):
+    """{"scene", "tets", "machine", "steps", "warmup", "kinds": {kind: table}}: the kernel profile
+    (app/profile.py) of a BOXES bar's one-solve and default steps. Taichi restarts with its
+    profiler on, which ends every Simulation made before: run it last."""
+    fem.init(args.arch, args.precision, debug=args.debug, profile=True)
+    sim = fem.Simulation(make_scene(ref))
+    kinds = {kind: profile.profile_steps(sim, kind, PROFILE_WARMUP, PROFILE_STEPS) for kind in profile.STEP_KINDS}
+    return {"scene": ref, "tets": sim.model.n_tets, "steps": PROFILE_STEPS, "warmup": PROFILE_WARMUP, "kinds": kinds,
+            "machine": f"{info['cpu']}, {info['cores']} cores, {info['backend']} {info['precision']}, "
+                       f"{datetime.date.today().isoformat()}"}

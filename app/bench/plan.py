@@ -51,15 +51,17 @@ class Plan:
     startup: str = ""     # a scene whose start-up and resting cost are measured too ("": none)
     stiff: str = ""       # a BOXES bar also compared, made STIFF, on preconditioners alone ("": none)
     preconditioner_steps: int = 30   # steps of each preconditioner in their comparison
+    profile: str = ""     # a BOXES bar whose one-solve and default steps get a kernel profile ("": none)
 
 
 def full_plan():
     return Plan([*scenes.builtin_scenes(), "box1k", "box10k", "box50k"], (0.4, 1.0, 2.0), 2, 120.0, "epcot",
-                "box50k")
+                "box50k", profile="box50k")
 
 
 QUICK = Plan(["cube86", "box1k"], (0.4, 1.0), 2, 20.0)
-TEST = Plan(["box80"], (0.08, 0.2), 2, 10.0, stiff="box80", preconditioner_steps=3)   # tests: seconds
+TEST = Plan(["box80"], (0.08, 0.2), 2, 10.0, stiff="box80", preconditioner_steps=3,   # tests: seconds
+            profile="box80")
 
 
 @dataclass(frozen=True)

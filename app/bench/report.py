@@ -9,6 +9,7 @@ from app.bench.conclusions import (ORDER_MARGIN, baseline, corotation_cost, dire
 from app.bench.measure import PRECONDITIONER_TOLERANCE
 from app.bench.plan import (BASELINE_TOLERANCE, ERROR_GOAL, INTEGRATORS, MIN_REFERENCE_ORDER, REFERENCE_ORDER,
                             REFERENCE_REFINEMENT, REFERENCE_SETTINGS, SECOND_ORDER, sci, step_name)
+from app import profile
 from app.bench.plot import plot
 from app.files import atomic_open
 from fem.implicit.preconditioner import TWO_LEVEL_VERTICES
@@ -71,6 +72,7 @@ def markdown(results):
               f"{m['bench_minutes']:.1f} minutes.", "", explanation(results), ""]
     lines += targets(results)
     lines += preconditioner_table(results)
+    lines += kernel_profile(results)
     lines += ["## Summary", "",
               f"Corotational backward Euler, PCG {sci(BASELINE_TOLERANCE)}; time in wall seconds per simulated "
               "second, errors at the last checkpoint; the largest dt of the dt axis whose error plus the floor is "
@@ -283,6 +285,26 @@ def preconditioner_table(results):
                      f"| {two['ms_median']:.3g} | {two['iters_per_step']:.3g} "
                      f"| {two['ms_median'] / jacobi['ms_median']:.2f} | {p['auto']} |")
     return lines + [""]
+
+
+def kernel_profile(results):
+    """Where the steps of the profiled box go, kernel by kernel (`simulate --profile`'s table)."""
+    if "profile" not in results:
+        return []
+    p = results["profile"]
+    lines = ["## Where a step's time goes", "",
+             f"{p['scene']} ({p['tets']} tets), Taichi's kernel profiler (`simulate --profile`, app/profile.py), "
+             f"{p['machine']}: {p['steps']} steps of each kind after {p['warmup']} from the start. *tasks*: the "
+             "device launches (a task per top-level loop of a kernel); *share*: of the median step, whose time "
+             "outside kernels is Python, launching and waiting. Bytes need CUDA's CUPTI counters: n/a on a CPU. "
+             "On a GPU, `python -m tools.gpu_measure OUT.md --arch gpu` times box bars of 49k to 2M tets and "
+             "prints these tables for 49k and 973k.",
+             ""]
+    for kind, table in p["kinds"].items():
+        lines += [f"**{kind} step**, {table['ms_median']:.3g} ms/step median with the profiler on:", "",
+                  profile.markdown(table["rows"], table["steps"], table["steps"] * table["ms_median"], top=15), "",
+                  f"Launches: {profile.launches_note(table)}.", ""]
+    return lines
 
 
 def direct_split(scene):

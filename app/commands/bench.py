@@ -11,7 +11,8 @@ from pathlib import Path
 from app import device, outputs
 from app.bench import startup
 from app.bench.conclusions import headline
-from app.bench.measure import STIFF, compare_preconditioners, machine, measure_scene, stiff_bar
+from app.bench.measure import (STIFF, compare_preconditioners, kernel_profile, machine, measure_scene,
+                               stiff_bar)
 from app.bench.plan import QUICK, REFERENCES, full_plan, variants
 from app.bench.report import DOCS, DOCS_FILES, RESULT_FILES, write
 from app.files import check_output, refuse_overwrite
@@ -59,6 +60,9 @@ def run(args, plan=None):
         results["startup"] = startup.measure(plan.startup)
         results["startup"]["resting_ms"] = startup.resting_cost(plan.startup)
         results["startup"].update(startup.view_seconds(plan.startup))    # {} without a display
+    if plan.profile:
+        print(f"bench: kernel profile of {plan.profile}", file=sys.stderr)
+        results["profile"] = kernel_profile(plan.profile, args, info)    # last: it restarts Taichi
     write(results, folder, names)
     print("\n".join(lines))
     print(f"wrote {folder / names['md']}, {names['json']}, {names['plot']} ({info['bench_minutes']:.1f} min)")

@@ -14,7 +14,7 @@ from pathlib import Path
 import fem
 import scenes
 from app import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, device
-from app import outputs
+from app import outputs, profile
 from app.files import atomic_open, interrupts_deferred, refuse_overwrite
 from app.progress import Progress
 from fem.implicit.integrators import chosen
@@ -43,8 +43,10 @@ def run(args) -> int:
     try:
         with (atomic_open(args.stats, keep_if_interrupted=True, overwrite=args.overwrite) if to_file else _nullfile(args.stats)) as out, \
                 Progress(args.steps, "step", sim.scene.name) as progress:
-            for _ in range(args.steps):
+            for step in range(args.steps):
                 sim.step()
+                if args.profile and step == 0:
+                    profile.restart()         # the first step compiles and touches memory first
                 row = sim.stats() if out else sim.last
                 with interrupts_deferred():      # the row in the file and the count move together
                     if out:
@@ -57,8 +59,22 @@ def run(args) -> int:
         if rows:
             print(summary(sim, rows), file=report)
         return EXIT_INTERRUPTED
+    table = profile_table(rows) if args.profile else None     # before the summary's own kernels
     print(summary(sim, rows), file=report)
+    if table:
+        print(table, file=report)
     return check_rejected(rows, sim.settings.dt)
+
+
+def profile_table(rows):
+    """The kernel profile of the steps after the first (of all of them when there is one), its
+    shares of the median step's time: later steps compile what the first did not need (a
+    line search's trial), and a median leaves those out."""
+    wall = rows["wall_ms"][1:] or rows["wall_ms"]
+    steps, median = max(1, len(wall)), statistics.median(wall or [0.0])
+    table = profile.rows(profile.kernels(), steps, steps * median)
+    return (f"kernel profile of {steps} steps ({median:.2f} ms/step median with the profiler on):\n"
+            + profile.markdown(table, steps, steps * median))
 
 
 class Tally:

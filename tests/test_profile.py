@@ -1,0 +1,50 @@
+"""`simulate --profile`: a table of kernels whose times add up to the step's, on the CPU."""
+
+import contextlib
+import io
+
+import main
+
+
+def run(*argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main.main(list(argv))
+    return code, out.getvalue(), err.getvalue()
+
+
+def table(text):
+    """{kernel: [cells]} of the profile's markdown rows."""
+    rows = {}
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if line.startswith("| ") and len(cells) == 9 and cells[0] != "kernel":
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_profile_lists_the_solver_kernels_and_their_shares_add_up():
+    code, out, err = run("simulate", "cube86", "--steps", "6", "--profile", "--integrator", "backward-euler",
+                         "--step", "single")
+    assert code == 0, err
+    assert "kernel profile of 5 steps" in out
+    rows = table(out)
+    assert {"cg_iterations", "start_residual", "extract_rotations"} <= set(rows)
+    for name in ("cg_iterations", "start_residual"):
+        launches, tasks, per_step = int(rows[name][0]), int(rows[name][1]), float(rows[name][2])
+        assert launches >= 5 and tasks >= launches
+        assert abs(per_step - tasks / 5) < 0.05
+        assert rows[name][6:] == ["n/a", "n/a"]                  # the CPU cannot count bytes
+    kernels = [float(cells[5].rstrip(" %")) for name, cells in rows.items()
+               if name not in ("all kernels", "outside kernels (Python, launching, waiting)")]
+    total = float(rows["all kernels"][5].rstrip(" %"))
+    outside = float(rows["outside kernels (Python, launching, waiting)"][5].rstrip(" %"))
+    assert abs(sum(kernels) - total) < 0.1 * len(kernels)       # rounding of each row
+    assert abs(total + outside - 100) < 0.2
+    assert 0 < total <= 100 + 5                                 # the median step holds its kernels
+
+
+def test_without_profile_no_table():
+    code, out, err = run("simulate", "cube86", "--steps", "2")
+    assert code == 0, err
+    assert "kernel profile" not in out

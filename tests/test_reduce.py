@@ -1,0 +1,76 @@
+"""fem/reduce.py: two-stage sums and maxima per segment equal numpy's, on one segment, on many of
+uneven sizes (empty ones among them) and on 1000, with contiguous and interleaved chunks, on one
+thread and on many."""
+
+import numpy as np
+import pytest
+import taichi as ti
+
+import fem
+from fem.reduce import CHUNK, SegmentSums, chunk_layout
+
+
+@ti.data_oriented
+class Summed:
+    """values (n, 2) summed (or maximised) per segment into out (segments, 2), in float64."""
+
+    def __init__(self, values, starts, **options):
+        self.values = ti.Vector.field(2, ti.f64, len(values))
+        self.values.from_numpy(values)
+        self.out = ti.Vector.field(2, ti.f64, len(starts) - 1)
+        self.sums = SegmentSums(len(values), len(starts) - 1, 2, ti.f64, **options)
+        self.sums.load(starts)
+
+    @ti.func
+    def value(self, j, s, values: ti.template()):
+        return values[j]
+
+    @ti.func
+    def store(self, s, total):
+        self.out[s] = total
+
+    @ti.kernel
+    def run(self):
+        self.sums.reduce(self.value, self.store, self.values)
+
+
+
+def segments(sizes):
+    return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+
+
+def uneven(count, seed=1):
+    """`count` segment sizes from 0 to a few chunks, a few of them long."""
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(0, 3 * CHUNK, count)
+    sizes[rng.integers(0, count, max(1, count // 10))] = rng.integers(5 * CHUNK, 40 * CHUNK)
+    sizes[0] = 0
+    return sizes
+
+
+CASES = {"one body": np.array([50_000]), "uneven bodies": uneven(37), "1000 bodies": uneven(1000)}
+
+
+@pytest.mark.parametrize("serial", [False, True])
+@pytest.mark.parametrize("interleave", [False, True])
+@pytest.mark.parametrize("case", CASES)
+def test_sums_and_maxima_per_segment_equal_numpy(f32, case, interleave, serial):
+    starts = segments(CASES[case])
+    values = np.random.default_rng(2).standard_normal((starts[-1], 2))
+    expected_sum = np.array([values[a:b].sum(0) if b > a else [0, 0] for a, b in zip(starts, starts[1:])])
+    expected_max = np.array([np.maximum(values[a:b].max(0), 0) if b > a else [0, 0]
+                             for a, b in zip(starts, starts[1:])])
+    for combine, expected in (("sum", expected_sum), ("max", expected_max)):
+        summed = Summed(values, starts, combine=combine, interleave=interleave, serial=serial)
+        summed.run()
+        magnitude = np.array([np.abs(values[a:b]).sum(0) for a, b in zip(starts, starts[1:])])
+        assert np.all(np.abs(summed.out.to_numpy() - expected) <= 1e-14 * magnitude)
+
+
+def test_chunks_cover_each_segment_once_and_hold_at_most_chunk_items():
+    starts = segments([0, 1, CHUNK, CHUNK + 1, 10 * CHUNK - 3])
+    chunk_segment, first_chunk = chunk_layout(starts, CHUNK, single=False)
+    assert first_chunk.tolist() == [0, 1, 2, 3, 5, 15]
+    assert chunk_segment.tolist() == [0, 1, 2, 3, 3] + [4] * 10
+    _, one_each = chunk_layout(starts, CHUNK, single=True)
+    assert one_each.tolist() == [0, 1, 2, 3, 4, 5]
