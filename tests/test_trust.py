@@ -68,7 +68,7 @@ def test_the_command_line_wins_over_ti_arch(value):
 def test_a_taichi_variable_it_cannot_use_is_one_error_line():
     result = start({"TI_CPU_MAX_NUM_THREADS": "abc"})
     assert result.returncode == 2
-    one_error_line(result.stderr, "TI_CPU_MAX_NUM_THREADS", "unset them")
+    one_error_line(result.stderr, "TI_CPU_MAX_NUM_THREADS", "unset it")
 
 
 def surfaces(folder):

@@ -267,12 +267,17 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
         except subprocess.CalledProcessError:
             # Seen twice in ~10 loaded suite runs: X said BadWindow for the id the keys above
             # reached while the viewer ran on. Look the window up again and press Escape there.
+            # (Seen once more under load with the lookup failing too: then the key goes to the
+            # focused window, the only one on this display.)
             try:
                 again = xdotool(env, "search", "--onlyvisible", "--name", "softfem", timeout=10).split()
                 xdotool(env, "key", "--window", again[0], "Escape")
-            except (subprocess.CalledProcessError, IndexError) as failure:
-                raise AssertionError(f"{getattr(failure, 'stderr', failure)} (window exit code "
-                                     f"{window.poll()}):\n" + (tmp_path / "view.log").read_text()) from failure
+            except (subprocess.CalledProcessError, IndexError):
+                try:
+                    xdotool(env, "key", "Escape")
+                except subprocess.CalledProcessError as failure:
+                    raise AssertionError(f"{getattr(failure, 'stderr', failure)} (window exit code "
+                                         f"{window.poll()}):\n" + (tmp_path / "view.log").read_text()) from failure
         assert window.wait(30) == 0, (tmp_path / "view.log").read_text()
     finally:
         if window.poll() is None:
