@@ -144,3 +144,8 @@ def serial_loops(count, kind):
 def epsilon():
     """Machine epsilon of the float type the fields use (f32 before init)."""
     return 2.0 ** -52 if _current.get("precision") == "f64" else 2.0 ** -23
+
+
+def has_f64_trigonometry():
+    """True where the backend computes sin and cos in float64 (CPU and CUDA; not Vulkan or Metal)."""
+    return _current.get("arch") in ("x64", "arm64", "cuda")

@@ -10,9 +10,10 @@ from fem.scene import Initial, Selection, SolverSettings
 
 
 def test_pcg_reaches_tolerance_and_reports_iterations(f64):
-    """A single step solves H v' = M v + dt f(x) to the tolerance it reports (no gravity, no damping)."""
+    """A single backward Euler step solves H v' = M v + dt f(x) to the tolerance it reports (no
+    gravity, no damping)."""
     scene = spinning("corotational", solver=SolverSettings(dt=0.02, tolerance=1e-8, max_iterations=400,
-                                                           step="single"))
+                                                           step="single", integrator="backward-euler"))
     scene.initial.append(Initial(Selection(None), "stretch", (np.array([1.0, 0, 0]), 1.3)))
     sim = fem.Simulation(scene)
     x, v = sim.positions(), sim.velocities()

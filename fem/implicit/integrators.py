@@ -109,24 +109,29 @@ class History:
         """The Target of the next step of `integrator` at dt (version: the model's, whose forces
         a_n was taken with). The trapezoidal rule is a one-step scheme: it needs a_n, which the
         last step's update gives, or else the forces at the step's start (`fresh`: the solver
-        computes it there). BDF2 needs the last step: its first is a trapezoidal step, second
-        order too, so that no step of a second-order run is first order."""
+        computes it there). BDF2 needs the last step: where there is none, its x_(n-1), v_(n-1) are
+        read off x_n, v_n and a_n (`apply`), so that no step of a second-order run is first order."""
         known = (self.dt, self.integrator, self.version) == (dt, integrator, version)
         self.fresh = integrator in TWO_STEP and not known
-        if integrator == "bdf2" and known:
+        if integrator == "bdf2":
             return BDF2
         if integrator == "trapezoidal":
             return theta_rule(rho)
-        return TRAPEZOIDAL if integrator in TWO_STEP else BACKWARD_EULER
+        return BACKWARD_EULER
 
-    def apply(self, target, integrator, potential, x, v, h):
+    def apply(self, target, integrator, potential, x, v, h, dt):
         """x0, v0 of the potential (x_n, v_n after its `begin`) <- the target's x^, v^ (h: its
         effective step); for BDF2, the step's start (x, v) is then kept as the next step's
-        x_(n-1), v_(n-1) (one launch; `remember` says whether the next step may use it)."""
+        x_(n-1), v_(n-1) (one launch; `remember` says whether the next step may use it). A BDF2
+        step with no last step (`fresh`) takes x_(n-1) = x_n - dt v_n + dt^2 a_n / 2 and
+        v_(n-1) = v_n - dt a_n, the Taylor expansion back from its start: second order, and as
+        stable as BDF2 (a first step by the trapezoidal rule rang on the ground's penalty)."""
         if integrator == "bdf2":
             if self.x_prev is None:
                 n = self.model.capacity.vertices
                 self.x_prev, self.v_prev = ti.Vector.field(3, float, n), ti.Vector.field(3, float, n)
+            if self.fresh:
+                self.extrapolate(x, v, dt)
             self.advance(potential.x0, potential.v0, x, v, target.a, target.b, int(target.b != 0.0))
         if target.one_step:
             self.half_step(potential.x0, potential.v0, target.c * h)
@@ -156,6 +161,14 @@ class History:
                 x0[i] = a * x0[i] + b * self.x_prev[i]
                 v0[i] = a * v0[i] + b * self.v_prev[i]
             self.x_prev[i], self.v_prev[i] = x[i], v[i]
+
+    @ti.kernel
+    def extrapolate(self, x: ti.template(), v: ti.template(), dt: float):
+        """x_(n-1), v_(n-1) <- x_n - dt v_n + dt^2 a_n / 2, v_n - dt a_n."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.x_prev[i] = x[i] - dt * v[i] + 0.5 * dt * dt * self.accel[i]
+            self.v_prev[i] = v[i] - dt * self.accel[i]
 
     @ti.kernel
     def half_step(self, x0: ti.template(), v0: ti.template(), h: float):

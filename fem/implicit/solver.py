@@ -139,7 +139,7 @@ class ImplicitSolver:
             self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
         if self.history.fresh:                                          # a_n from the forces at x_n, v_n
             self.start_acceleration(state_in.x, h, dt)
-        self.history.apply(target, integrator, p, state_in.x, state_in.v, h)   # x^, v^ (backward Euler: x_n, v_n)
+        self.history.apply(target, integrator, p, state_in.x, state_in.v, h, dt)   # x^, v^ (backward Euler: x_n, v_n)
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
@@ -169,6 +169,9 @@ class ImplicitSolver:
         bad, trimmed, rigid = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, True,
                                                          newton, accel, target.one_step, conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
+        if finite and rigid > 0:      # a rigid step moves every vertex: in f32, rounding strains a stiff body
+            rotation_ms += self.update_rotations(p.x, corotational)[0]
+            self.safeguards.settle(state_in.x, p.x, p.v)
         trimmed = int(trimmed) if finite else 0
         # the rotations and elastic energies the next step can reuse: those of its x_n (the
         # projection scales velocities and shifts bodies whole: strains stay), unless a body
