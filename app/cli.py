@@ -68,6 +68,7 @@ Redraw every figure in docs/ from the engine; each figure NAME is NAME.png and N
                         the Newton step never does
   integrator_order      error against dt: backward Euler (first order) against BDF2 and the
                         trapezoidal rule (second order)
+  energy_drift          energy over 10 s of a free spinning, twisting bar, each integrator
 
 All of them take a few minutes on 2 CPU cores. docs/viewer.png is not made here: it is a
 screenshot of the window (`view epcot --compare`, then the p key)."""

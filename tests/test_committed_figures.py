@@ -13,7 +13,8 @@ from test_cli import run
 from test_figures import DOCS
 
 FIGURES = ["accuracy_vs_time", "volume_bunny", "volume_cube", "volume_cube86", "volume_epcot", "volume_fertility",
-           "frame25_builtin", "epcot_compare", "epcot_compare_volume", "hard_case_energy", "integrator_order"]
+           "frame25_builtin", "epcot_compare", "epcot_compare_volume", "hard_case_energy", "integrator_order",
+           "energy_drift"]
 # Numbers agree to 5 % or 0.01 (f32 round-off in long runs, a few solver iterations more or less).
 RELATIVE, ABSOLUTE = 0.05, 1e-2
 # A run that blows up amplifies round-off, and round-off differs between processors (the same kernels

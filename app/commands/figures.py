@@ -24,6 +24,7 @@ compared with a committed one number by number.
                           one-solve step gains energy, the Newton step never does
     integrator_order      position error against dt of backward Euler, BDF2 and the trapezoidal
                           rule (app.bench.order)
+    energy_drift          total energy over 10 s of a free spinning, twisting bar, each integrator
 
 Every run takes the scene's own time step and solver settings (the Newton step), on the CPU
 in f32 unless --arch or --precision say otherwise; pictures come from the software renderer,
@@ -118,6 +119,9 @@ def catalogue():
         Figure("integrator_order", "error against dt, backward Euler (first order) against BDF2 and the "
                "trapezoidal rule (second)",
                lambda maker: Drawn(*order.order_figure(PLOT_SIZE, PLOT_DPI))),
+        Figure("energy_drift", f"energy over {order.DRIFT_SECONDS:g} s of a free spinning, twisting bar, "
+               "each integrator", lambda maker: Drawn(*order.drift_figure(PLOT_SIZE, PLOT_DPI, maker.steps(order.DRIFT_SECONDS, order.DRIFT_DT)
+                                                        * order.DRIFT_DT))),
     ]
 
 
