@@ -116,9 +116,10 @@ class SolverSettings:
     integrator: str = "auto"            # "trapezoidal" (second order, undamped: Newmark's average acceleration) |
                                         # "bdf2" (second order, damps fast modes) | "backward-euler" (first
                                         # order) | "auto": the trapezoidal rule, BDF2 where there is a ground
-    rho_infinity: float = 1.0           # the trapezoidal rule's numerical dissipation: a mode dt cannot
+    rho_infinity: float | None = None   # the trapezoidal rule's numerical dissipation: a mode dt cannot
                                         # resolve is multiplied by -rho_infinity a step (1: none, the
-                                        # conserving scheme; 0: backward Euler's)
+                                        # conserving scheme; 0: backward Euler's); None: 1, or with
+                                        # Rayleigh damping DAMPED_RHO, so that damped bodies come to rest
     max_newton: int = 20                # Newton iterations per step at most
     newton_tolerance: float = 1e-5      # per body: stop (unconverged) when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration
@@ -138,7 +139,7 @@ class SolverSettings:
             raise FemError(f"{where}: step must be one of {STEPS}, got {self.step!r}")
         if self.integrator not in INTEGRATOR_CHOICES:
             raise FemError(f"{where}: integrator must be one of {INTEGRATOR_CHOICES}, got {self.integrator!r}")
-        if not 0.0 <= self.rho_infinity <= 1.0:
+        if self.rho_infinity is not None and not 0.0 <= self.rho_infinity <= 1.0:
             raise FemError(f"{where}: rho_infinity must be in [0, 1], got {self.rho_infinity}")
         if not self.newton_tolerance > 0:
             raise FemError(f"{where}: newton_tolerance must be > 0, got {self.newton_tolerance}")

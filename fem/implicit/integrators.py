@@ -75,6 +75,12 @@ def theta_rule(rho):
     return Target("trapezoidal", 1.0, 0.0, 1.0 / (1.0 + rho), rho)
 
 
+# With Rayleigh damping the trapezoidal rule takes at most this rho_infinity: damping D = alpha M +
+# beta K makes a stiff mode's continuous decay fast, but rho = 1 maps a mode decaying far faster than
+# 1/dt to a factor -1 a step, and a damped body would ring for ever (a cantilever with alpha 5 at
+# dt 0.5 s rang after 2,000 steps); at 0.9 it loses 10 % a step, while a mode dt resolves loses
+# (theta - 1/2) (omega dt)^2 = 0.026 (omega dt)^2 more than its damping's share
+DAMPED_RHO = 0.9
 BACKWARD_EULER = Target("backward-euler", 1.0, 0.0, 1.0)
 BDF2 = Target("bdf2", 4.0 / 3.0, -1.0 / 3.0, 2.0 / 3.0)
 TRAPEZOIDAL = theta_rule(1.0)

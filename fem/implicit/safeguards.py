@@ -40,6 +40,7 @@ Fields (bodies of the capacity; energies summed in float64):
     body_fallback (bodies,)      1: trimmed this step (`fall_back`)
     body_touching (bodies,)      1: pressed into the ground at the step's start or end (`find_contacts`)
     body_speed (bodies,)         a trimmed body's velocity factor on the ground (`slowed`)
+    body_clearance (bodies,)     m: its lowest vertex's height above the ground at the step's end
     body_kinetic_before (bodies,)  J: its kinetic energy BEFORE the step
 """
 
@@ -55,6 +56,7 @@ BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
 # velocities up by at most this share: energy the step lost in a mode it cannot follow (a
 # stiff body's unresolved breathing) is not pumped into another
 LIFT = 0.1
+FAR = 1e30           # m: the clearance of a body when there is no ground
 THREE_I32 = ti.types.vector(3, ti.i32)
 
 
@@ -88,6 +90,7 @@ class Safeguards:
         self.body_spin_new = ti.Vector.field(3, ti.f64, nb)
         self.body_shift_vector = ti.Vector.field(3, ti.f64, nb)
         self.body_speed = ti.field(ti.f64, nb)
+        self.body_clearance = ti.field(float, nb)
         self.body_kinetic_before = ti.field(ti.f64, nb)
         self.forget_band()
 
@@ -135,15 +138,20 @@ class Safeguards:
     def find_contacts(self, x_n: ti.template(), x: ti.template()):
         """body_touching[b] <- 1 where some vertex of body b is pressed into the ground at the
         step's start or end: the ground may have pushed it, so its momentum is not internal
-        forces' and gravity's alone. (No ground: every body is free.)"""
+        forces' and gravity's alone. (No ground: every body is free.) body_clearance[b] <- how far
+        its lowest vertex is above the ground at the end (m): the energy projection's shift along
+        g may not reach it."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_touching[b] = 0
+            self.body_clearance[b] = ti.static(FAR)
         if ti.static(self.effects.has_ground):
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(self.model.vertex_count[None]):
+                b = self.model.vertex_body[i]
                 if self.effects.pressed(x_n[i]) or self.effects.pressed(x[i]):
-                    self.body_touching[self.model.vertex_body[i]] = 1
+                    self.body_touching[b] = 1
+                ti.atomic_min(self.body_clearance[b], x[i][1] - self.effects.ground[None])
 
     @ti.func
     def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(), dt):
@@ -277,8 +285,9 @@ class Safeguards:
             elif energy > self.body_lowest[b] + allowance:     # a rise within round-off is no rise
                 excess = energy - self.body_lowest[b] - 0.5 * allowance
             K, G = self.body_deformation[b], ti.cast(0.0, ti.f64)
-            if ti.static(self.has_gravity and not self.effects.has_ground):   # a shift could reach into a ground
-                if self.body_pinned[b] == 0 and self.body_touching[b] == 0:
+            if ti.static(self.has_gravity):      # a shift along g that could reach the ground is none
+                if self.body_pinned[b] == 0 and self.body_touching[b] == 0 \
+                        and excess < self.body_mass[b] * self.effects.gravity_vector().norm() * self.body_clearance[b]:
                     G = dt * dt * self.body_mass[b] * ti.cast(self.effects.gravity_vector(), ti.f64).norm_sqr()
             lam = ti.cast(0.0, ti.f64)
             self.body_fallback[b] = 0

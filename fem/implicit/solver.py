@@ -16,7 +16,7 @@ import taichi as ti
 
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
-from fem.implicit.integrators import TRAPEZOIDAL, History, chosen
+from fem.implicit.integrators import DAMPED_RHO, TRAPEZOIDAL, History, chosen
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
 from fem.implicit.potential import ROUNDOFF, IncrementalPotential
@@ -118,7 +118,10 @@ class ImplicitSolver:
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
         integrator = chosen(settings.integrator, self.switches.ground)    # "auto": by the scene
-        target = self.history.target(integrator, dt, model.version, settings.rho_infinity)
+        rho = settings.rho_infinity
+        if rho is None:                                                 # by the scene: rest where damped
+            rho = DAMPED_RHO if self.effects.damped else 1.0
+        target = self.history.target(integrator, dt, model.version, rho)
         h = target.h_per_dt * dt                                        # the integrator's effective step
         cM, cK = p.coefficients(h)
         self.refresh(cM, cK, h, dt)
