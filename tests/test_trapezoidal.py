@@ -175,4 +175,4 @@ def test_auto_is_the_trapezoidal_rule_but_bdf2_on_the_ground(f64):
         scene = make_scene(box_mesh(2), effects=Effects(gravity=(0.0, -9.81, 0.0), ground=ground),
                            solver=SolverSettings(dt=0.02), position=(0.0, 0.5, 0.0))
         sim = fem.Simulation(scene)
-        assert [sim.step()["integrator"] for _ in range(2)] == ["trapezoidal", integrator]
+        assert [sim.step()["integrator"] for _ in range(2)] == [integrator, integrator]

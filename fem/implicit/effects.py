@@ -43,6 +43,7 @@ CONTACT_STIFFNESS = 1000.0   # k dt^2: the penalty's stiffness in units of a ver
 FRICTION_SPEED = 1e-3        # m/s: below this tangential speed friction is a smooth parabola (sticking);
                              # a body resting on the ground may creep at up to this speed (fem/simulation.py)
 RECOVERY_SPEED = 1.0         # m/s: how fast a vertex placed deep in the ground rises out of it
+UNREACHABLE = 1e30           # m: a plane no vertex is below
 
 
 @ti.data_oriented
@@ -172,6 +173,20 @@ class Effects:
             self.normal_force[i] = km * ti.max(0.0, self.plane[i] - xn[i][1])
             drag = h * self.friction[None] * self.normal_force[i] / ti.static(FRICTION_SPEED)
             self.contact_hessian[i] = ti.Vector([drag, h * h * km * (x[i][1] < self.plane[i]), drag, 0.0])
+
+    @ti.kernel
+    def release_deep(self):
+        """After `start_contacts`, for the acceleration at a step's start (a_n, which BDF2's and the
+        trapezoidal rule's history start from): a vertex deeper than one step of RECOVERY_SPEED
+        feels no ground. Its penalty, k m_i RECOVERY_SPEED dt, is an impulse the step's
+        minimisation turns into a rise at RECOVERY_SPEED, but as an acceleration it is 1000
+        RECOVERY_SPEED / dt (5e4 m/s^2 at dt 0.02 s), which a history taken from it would carry
+        into every later step: a body placed 0.45 m into the ground left it at 323 m/s."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            if self.plane[i] < self.ground[None]:
+                self.plane[i] = -ti.static(UNREACHABLE)
+                self.normal_force[i] = 0.0
 
     @ti.kernel
     def body_grounded(self, x: ti.template(), grounded: ti.types.ndarray()):

@@ -144,7 +144,7 @@ class Safeguards:
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_touching[b] = 0
-            self.body_clearance[b] = ti.static(FAR)
+            self.body_clearance[b] = FAR
         if ti.static(self.effects.has_ground):
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(self.model.vertex_count[None]):

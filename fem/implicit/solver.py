@@ -204,6 +204,7 @@ class ImplicitSolver:
         p = self.potential
         if self.switches.ground:
             self.effects.start_contacts(x_n, p.x, h, dt)
+            self.effects.release_deep()
         p.gradient(p.v0, p.x, p.v, h, 1.0, False)
         self.store_acceleration(self.history.acceleration(), h)
 
