@@ -65,6 +65,11 @@ class Effects:
         self.normal_force = ti.field(float, n if self.has_ground else 1)
         self.plane = ti.field(float, n if self.has_ground else 1)
         self.contact_hessian = ti.Vector.field(4, float, n if self.has_ground else 1)
+        self.has_contact = switches.contact                  # between bodies: fem/implicit/contact.py
+        self.contact = None
+        if self.has_contact:
+            from fem.implicit.contact import Contact     # it reads this module's constants
+            self.contact = Contact(model, self, switches)
 
     def load(self, effects):
         """A scene's effects (fem.scene.Effects); alpha and beta are also kept for the host."""
@@ -73,6 +78,8 @@ class Effects:
         self.gravity[None] = effects.gravity or (0.0, 0.0, 0.0)
         self.ground[None] = effects.ground or 0.0
         self.friction[None] = effects.friction
+        if self.has_contact:
+            self.contact.load(effects.contact)
 
     def set_dt(self, dt):
         """The contact's stiffness follows the scene's dt (not an integrator's own h), so that

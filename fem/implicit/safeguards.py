@@ -197,7 +197,13 @@ class Safeguards:
                 self.body_elastic[body] += elastic
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            self.body_total[when, b], self.body_total_size[when, b] = self.body_elastic[b], self.body_elastic[b]
+            self.body_total[when, b], self.body_total_size[when, b] = 0.0, 0.0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_total[when, self.island(b)] += self.body_elastic[b]
+            self.body_total_size[when, self.island(b)] += self.body_elastic[b]
+        if ti.static(self.effects.has_contact):
+            self.effects.contact.share_energy(x)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
@@ -206,8 +212,10 @@ class Safeguards:
                 potential = -m * ti.cast(self.effects.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
             if ti.static(self.effects.has_ground):
                 kinetic += self.effects.contact_energy(i, x[i])      # stored in the ground's penalty
-            self.body_total[when, self.model.vertex_body[i]] += kinetic + potential
-            self.body_total_size[when, self.model.vertex_body[i]] += kinetic + ti.abs(potential)
+            if ti.static(self.effects.has_contact):
+                kinetic += self.effects.contact.energy[i]             # its share of the pairs' penalty
+            self.body_total[when, self.island(self.model.vertex_body[i])] += kinetic + potential
+            self.body_total_size[when, self.island(self.model.vertex_body[i])] += kinetic + ti.abs(potential)
 
     @ti.func
     def limit_energy(self, x0: ti.template(), x: ti.template(), v: ti.template(), dt, accel: ti.template(),
@@ -219,6 +227,11 @@ class Safeguards:
         rotations are still those at x)."""
         self.rigid_motion(x, v)
         limited, sent_back = 0, 0
+        if ti.static(self.effects.has_contact):                # one island: body 0's entries hold the sums
+            ti.loop_config(serialize=True)
+            for b in range(1, self.model.body_count[None]):
+                self.body_deformation[0] += self.body_deformation[b]
+                self.body_kinetic[0] += self.body_kinetic[b]
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             energy, allowance = self.body_total[AFTER, b], self.allowance(b, self.body_total_size[AFTER, b])
@@ -239,21 +252,30 @@ class Safeguards:
             self.body_kinetic[b], self.body_deformation[b] = spin, deformation   # reused: the factors
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            b = self.model.vertex_body[i]
-            if self.body_kinetic[b] < 0.0:
+            b, f = self.model.vertex_body[i], self.island(self.model.vertex_body[i])    # f: whose factors
+            if self.body_kinetic[f] < 0.0:
                 c = ti.Vector.zero(float, 3)       # gravity or the ground may have sped the centre up
                 if ti.static(not (self.has_gravity or self.effects.has_ground)):
                     c = ti.cast(self.centre_velocity(b), float) * self.model.free[i]
                 x[i], v[i] = x0[i] + dt * c, c
                 if ti.static(keep):
                     accel[i] = ti.Vector.zero(float, 3)
-            elif self.body_deformation[b] < 1.0:
+            elif self.body_deformation[f] < 1.0:
                 c = self.centre_velocity(b)
                 turn = self.body_spin[b].cross(ti.cast(x[i], ti.f64) - self.body_centre[b])
                 w = ti.cast(v[i], ti.f64) - c - turn
-                u = c + self.body_kinetic[b] * turn + self.body_deformation[b] * w
+                u = c + self.body_kinetic[f] * turn + self.body_deformation[f] * w
                 v[i] = ti.cast(u * self.model.free[i], float)
         return ti.Vector([limited, sent_back], ti.i32)
+
+    @ti.func
+    def island(self, b):
+        """The body whose entries hold body b's energy and limit: b itself, or body 0 where contact
+        lets bodies trade energy (they are then one island, limited together)."""
+        out = b
+        if ti.static(self.effects.has_contact):
+            out = 0
+        return out
 
     @ti.func
     def rigid_motion(self, x: ti.template(), v: ti.template()):

@@ -66,11 +66,12 @@ class Switches:
     pins: bool
     serial_tets: bool
     serial_vertices: bool
+    contact: bool = False             # between bodies and within one (fem/implicit/contact.py)
 
     @classmethod
     def of(cls, effects, n_vertices, n_tets, has_pins):
         return cls(effects.gravity is not None, effects.ground is not None, effects.beta > 0, has_pins,
-                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"))
+                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"), effects.contact is not None)
 
 
 @ti.data_oriented
@@ -112,10 +113,10 @@ class ImplicitSolver:
         """
         start = time.perf_counter()
         settings, model, p = self.settings, self.model, self.potential
-        corotational, ground = model.any_corotational, self.switches.ground
+        corotational, ground, contact = model.any_corotational, self.switches.ground, self.switches.contact
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
-        integrator = chosen(settings.integrator, self.switches.ground)    # "auto": by the scene
+        integrator = chosen(settings.integrator, ground or contact)     # "auto": by the scene
         target = self.history.target(integrator, dt)
         h = target.h_per_dt * dt                                        # the integrator's effective step
         cM, cK = p.coefficients(h)
@@ -125,6 +126,8 @@ class ImplicitSolver:
 
         # where the step starts, its energy, the guess, the integrator's inertia target, the first iterate
         moved = p.begin(state_in.x, state_in.v, self.x_end)
+        if contact:
+            self.effects.contact.find(state_in.x)                      # the pairs touching at x_n
         # a Newton step that starts where the last one ended has R(x_n) and the elastic energies
         # there already: its last trial's (the rotations extracted at the last step's end)
         ended_here = newton and moved == 0 and self.end_known == model.version
@@ -139,12 +142,16 @@ class ImplicitSolver:
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target is TRAPEZOIDAL else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
+        if contact:                                                     # contact: the first iterate is x_n
+            self.effects.contact.hold_start(p.x0, p.x, p.v, state_in.x, h)
         if target.from_history:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
         if ground:
             self.effects.start_contacts(state_in.x, p.x, h, dt)         # friction's normal forces at x_n
+        if contact:
+            self.effects.contact.start(p.x, p.v, h, p.body_E)           # lagged friction, the first Hessian
         # the blocks follow H: every step where the rotations or the contacts change it
-        exact = (newton and corotational) or settings.method != "pcg" or ground
+        exact = (newton and corotational) or settings.method != "pcg" or ground or contact
         self.preconditioning.update(p.x, cM, cK, turned, corotational, exact=exact, reuse=not exact,
                                     two_level=self.preconditioner == "two-level")
 
@@ -152,7 +159,7 @@ class ImplicitSolver:
         # Newton with the rotations of the first iterate, to find the contacts)
         if newton:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
-        elif ground and not model.any_naive:
+        elif (ground or contact) and not model.any_naive:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner, frozen=True)
         else:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
@@ -160,7 +167,8 @@ class ImplicitSolver:
         # the safeguards: finite, momentum (where no ground pushes), energy
         trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
         accel = self.history.acceleration() if trapezoidal else p.v0
-        bad, limited, sent_back = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt, not ground,
+        bad, limited, sent_back = self.safeguards.after_step(p.v0, p.x0, state_in.x, p.x, p.v, h, dt,
+                                                             not (ground or contact),
                                                              newton, accel, trapezoidal)
         finite = bad == 0 and math.isfinite(solved.rho)
         limited = int(limited) if finite else 0
