@@ -289,6 +289,8 @@ class Newton:
                                                                or unconverged))
             self.body_step[b] = self.searching[b] * largest
             count += self.searching[b]
+        if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
+            count = self.search_together(tolerance, largest)
         self.step_along(h, 1, int(count > 0))                 # the first trial
         return count
 
@@ -344,6 +346,31 @@ class Newton:
                     self.body_step[b] *= 0.5
                     left += 1
         return left
+
+    @ti.func
+    def search_together(self, tolerance, largest):
+        """`start_search` where contact couples the bodies: the bodies of one island
+        (Contact.find_islands) search together, from a = largest, where their summed slope
+        descends by more than the round-off of their summed E or one of them has not converged.
+        Returns how many bodies search."""
+        island, gradient = ti.static(self.effects.contact.island, self.potential.body_gradient)
+        scale, floor = ti.static(self.potential.body_scale, self.potential.body_floor)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.island_sums[b] = ti.Vector.zero(ti.f64, 4)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):  # slope, resolution, unconverged bodies
+            unconverged = gradient[b] > tolerance * tolerance * scale[b] + floor[b]
+            self.island_sums[island[b]] += ti.Vector([self.body_slope[b], self.body_resolution[b],
+                                                      ti.cast(unconverged, ti.f64), 0.0])
+        count = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            s = self.island_sums[island[b]]
+            self.searching[b] = int(s[0] < 0 and (-s[0] > s[1] or s[2] > 0))
+            self.body_step[b] = self.searching[b] * largest
+            count += self.searching[b]
+        return count
 
     @ti.func
     def armijo_together(self):
