@@ -131,3 +131,110 @@ def test_the_contact_gradient_is_the_energy_s_and_its_hessian_is_symmetric_and_p
         Hu = contact.product.to_numpy()[:m.n_vertices].astype(np.float64).ravel()
         np.testing.assert_allclose(Hu, H @ u.ravel(), rtol=1e-9, atol=1e-9 * np.abs(H @ u.ravel()).max())
     assert np.linalg.eigvalsh(H).min() > -1e-9 * np.abs(H).max()
+
+
+# ------------------------------------------------------------ the issue's two boxes
+
+@pytest.fixture(scope="module")
+def two_box_run():
+    """The issue's scene (scenes/two_boxes.toml): a 0.6 m box dropped from 1.2 m onto a 1 m box
+    on the ground, 2 s at dt 0.02 s in f32. Per step: overlaps, total energy and the stats row."""
+    fem.init("cpu", "f32")
+    sim = fem.Simulation(scenes.load_scene("two_boxes"))
+    history = {"overlaps": [], "energy": [], "rows": []}
+    history["energy"].append(sim.stats()["total_energy"])
+    for _ in range(100):
+        history["rows"].append(sim.step())
+        history["overlaps"].append(overlaps(sim))
+        history["energy"].append(sim.stats()["total_energy"])
+    history["x"] = sim.state.x.to_numpy()[:sim.model.n_vertices].astype(np.float64)
+    history["v"] = sim.state.v.to_numpy()[:sim.model.n_vertices].astype(np.float64)
+    history["bodies"], history["record"] = sim.model.bodies, sim.contact_record
+    return history
+
+
+def test_no_step_of_the_two_boxes_ends_with_a_vertex_inside_the_other_box(two_box_run):
+    assert two_box_run["overlaps"] == [0] * 100
+    assert all(row["finite"] for row in two_box_run["rows"])
+    assert all(row["interpenetrating"] == 0 for row in two_box_run["rows"])
+    assert two_box_run["record"]["most_pairs"] > 0                     # they did touch
+
+
+def test_after_two_seconds_the_upper_box_rests_on_the_lower_one(two_box_run):
+    """The issue's acceptance: the upper box on top, its bottom within the contact distance
+    (plus the penalty's sag, and what is left of its bounce) above the lower one's top."""
+    x, v, (lower, upper) = two_box_run["x"], two_box_run["v"], two_box_run["bodies"]
+    lower_top = x[lower.vertices][:, 1].max()
+    upper_bottom = x[upper.vertices][:, 1].min()
+    assert lower_top == pytest.approx(0.5, abs=0.02)                   # the lower box stands on the ground
+    assert 0.0 < upper_bottom - lower_top < 0.05
+    assert abs(x[upper.vertices][:, 0].mean()) < 0.1                   # still over the middle
+    assert np.abs(v[upper.vertices][:, 1].mean()) < 0.5                # m/s: settling, not falling
+
+
+def test_total_energy_never_rises_through_the_impact(two_box_run):
+    """Kinetic + elastic + gravitational + ground + contact energy, step to step, within the
+    energy promise's f32 tolerance (scenes/hard_cases.py, ENERGY_TOLERANCE)."""
+    energy = np.array(two_box_run["energy"])
+    assert np.isfinite(energy).all()
+    assert np.diff(energy).max() <= 1e-3 * np.abs(energy).max()
+    assert energy[-1] < energy[0]                                       # the impact dissipated some
+
+
+# ------------------------------------------------------------ one body meets itself
+
+def two_piece_body():
+    """One body of two disjoint cubes: the upper one falls onto the lower one, which is pinned.
+    Every pair between them is a pair of the same body: self-contact."""
+    lower, upper = cube(cells=2, size=(1.0, 0.4, 1.0)), cube(cells=2, size=(0.5, 0.5, 0.5))
+    vertices = np.vstack([lower.vertices, upper.vertices + np.array([0.1, 0.6, 0.05])])
+    tets = np.vstack([lower.tets, upper.tets + len(lower.vertices)])
+    body = Body("folded", type(lower)(vertices, tets, lower.source), Material(1e4, 0.3, 500.0), "corotational")
+    body.pinned = np.arange(len(lower.vertices))
+    return Scene("self", [body], effects=Effects(gravity=(0.0, -9.81, 0.0), contact=ContactEffect(0.02, 0.2)),
+                 solver=SolverSettings(dt=0.02))
+
+
+def test_a_body_does_not_pass_through_itself(f32):
+    sim = fem.Simulation(two_piece_body())
+    m = sim.model
+    lower = np.arange(len(cube(cells=2, size=(1.0, 0.4, 1.0)).vertices))
+    upper = np.setdiff1d(np.arange(m.n_vertices), lower)
+    lower_tets = m.tets_np[np.isin(m.tets_np, lower).all(axis=1)]
+    for _ in range(40):
+        assert sim.step()["finite"]
+        x = sim.state.x.to_numpy()[:m.n_vertices].astype(np.float64)
+        surface = np.intersect1d(np.unique(m.surface), upper)
+        assert points_inside(x, lower_tets, x[surface]) == 0
+    gap = x[upper][:, 1].min() - x[lower][:, 1].max()
+    assert 0.0 < gap < 0.03                                             # it came to rest on the lower piece
+    assert sim.last["contact_pairs"] > 0
+
+
+# ------------------------------------------------------------ switched off, and bad input
+
+def test_contact_off_compiles_no_contact_kernel(f32):
+    """A scene without [effects] contact makes no Contact part: nothing of it is compiled."""
+    scene = two_boxes(gap=0.5)
+    scene.effects.contact = None
+    sim = fem.Simulation(scene)
+    sim.step()
+    assert sim.solver.effects.contact is None and not sim.solver.switches.contact
+    assert "contact_pairs" not in sim.last
+
+
+@pytest.mark.parametrize("value, message", [("-0.01", "distance"), ("0.0", "distance"),
+                                            ("nan", "distance")])
+def test_a_bad_contact_distance_is_one_error_line(tmp_path, value, message):
+    import subprocess
+    import sys
+    from pathlib import Path
+    scene = (Path(scenes.__file__).parent / "two_boxes.toml").read_text().replace(
+        "distance = 0.01", f"distance = {value}")
+    path = tmp_path / "bad.toml"
+    path.write_text(scene)
+    out = subprocess.run([sys.executable, "main.py", "simulate", str(path), "--steps", "1"],
+                         capture_output=True, text=True, cwd=Path(scenes.__file__).parents[1])
+    assert out.returncode == 2
+    assert out.stderr.strip().startswith("error:") and message in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
