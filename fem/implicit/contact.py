@@ -185,12 +185,15 @@ class Contact:
         """pairs <- every (surface vertex, triangle not containing it) closer than radius at x."""
         nt = self.triangle_count[None]
         self.cell[None] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt):
             t = self.triangles[k]
             size = ti.max(x[t[0]], x[t[1]], x[t[2]]) - ti.min(x[t[0]], x[t[1]], x[t[2]])
             ti.atomic_max(self.cell[None], size.max() + 2.0 * radius)
+        ti.loop_config(serialize=self.serial_vertices)
         for b in range(self.table_size):
             self.cell_count[b] = 0
+        ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt):
             lo, hi = self.triangle_cells(x, k, radius)
             for i, j, l in ti.ndrange(2, 2, 2):
@@ -204,8 +207,10 @@ class Contact:
                 self.cell_start[b] = total
                 total += self.cell_count[b]
             self.cell_start[self.table_size] = total
+        ti.loop_config(serialize=self.serial_vertices)
         for b in range(self.table_size):
             self.cell_count[b] = 0
+        ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt):
             lo, hi = self.triangle_cells(x, k, radius)
             for i, j, l in ti.ndrange(2, 2, 2):
@@ -214,6 +219,7 @@ class Contact:
                     b = self.bucket(c)
                     self.cell_triangles[self.cell_start[b] + ti.atomic_add(self.cell_count[b], 1)] = k
         self.pair_count[None], self.overflow[None] = 0, 0
+        ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.surface_count[None]):
             i = self.surface[s]
             c = self.cell_of(x[i])
@@ -288,6 +294,7 @@ class Contact:
             self.force[i] = ti.Vector.zero(float, 3)
             self.block[i] = ti.Matrix.zero(float, 3, 3)
         d_hat = self.distance[None]
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids = self.vertices(q)
             d, n, c = self.gap(x, ids)
@@ -302,6 +309,7 @@ class Contact:
                     self.block[ids[a]] += c[a] * c[a] * A
             self.pair_weights[q], self.pair_matrix[q] = c, A
         mu = self.friction[None]
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.stick_count[None] * (mu > 0)):
             ids = self.stick_vertices(q)
             c, n = self.stick_weights[q], self.stick_normal[q]
@@ -337,12 +345,14 @@ class Contact:
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None] * on):
             self.product[i] = ti.Vector.zero(float, 3)
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None] * on):
             ids, c = self.vertices(q), self.pair_weights[q]
             s = ti.Vector.zero(float, 3)
             for a in ti.static(range(4)):
                 s += c[a] * (z[ids[a]] + beta * p[ids[a]])
             self.scatter(self.product, ids, c, self.pair_matrix[q] @ s)
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.stick_count[None] * on * (self.friction[None] > 0)):
             ids, c = self.stick_vertices(q), self.stick_weights[q]
             s = ti.Vector.zero(float, 3)
@@ -363,6 +373,7 @@ class Contact:
         with their normal force), then E's terms and Hessian there (for the preconditioner)."""
         d_hat = self.distance[None]
         self.stick_count[None] = 0
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids = self.vertices(q)
             d, n, c = self.gap(x, ids)
@@ -380,12 +391,14 @@ class Contact:
         every later iterate is reached by line searches that keep the pairs apart, so no step
         starts through a triangle. Leaves the pairs around x_n that the first iterate can meet."""
         self.largest_move[None] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.surface_count[None]):
             i = self.surface[s]
             ti.atomic_max(self.largest_move[None], (x[i] - x_n[i]).norm())
         D = ti.min(self.largest_move[None], self.reach[None])
         self.find_pairs(x_n, self.distance[None] + 2.0 * D)
         self.step_limit[None] = float(self.largest_move[None] <= self.reach[None])
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids = self.vertices(q)
             move = (x[ids[0]] - x_n[ids[0]]).norm() + ti.max((x[ids[1]] - x_n[ids[1]]).norm(),
@@ -405,6 +418,7 @@ class Contact:
         d_hat + 2 D, D = h max_i |d_i|, capped at `reach`) and the largest step a <= 1 that keeps
         every pair at least (1 - SAFETY) of its gap apart; returns that step."""
         self.largest_move[None] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.surface_count[None]):
             ti.atomic_max(self.largest_move[None], h * d[self.surface[s]].norm())
         D, limit = self.largest_move[None], 1.0
@@ -413,6 +427,7 @@ class Contact:
         self.find_pairs(x, self.distance[None] + 2.0 * limit * D)
         self.find_islands()
         self.step_limit[None] = limit
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids = self.vertices(q)
             gap = self.gap(x, ids)[0]
@@ -426,6 +441,7 @@ class Contact:
     @ti.kernel
     def terms(self, x: ti.template(), v: ti.template(), h: float, sums: ti.template()):
         """`evaluate` at (x, v) with the current pairs, each body's energies into sums (J)."""
+        ti.loop_config(serialize=self.serial_vertices)
         for b in range(self.model.body_count[None]):
             sums[b] = 0.0
         self.evaluate(x, v, h, sums)
@@ -448,6 +464,7 @@ class Contact:
         for i in range(self.model.vertex_count[None]):
             self.energy[i] = 0.0
         d_hat = self.distance[None]
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids = self.vertices(q)
             d, n, c = self.gap(x, ids)
@@ -465,6 +482,7 @@ class Contact:
         the other side's surface), interpenetrating."""
         d_hat = self.distance[None]
         self.smallest[None], self.touching[None], self.crossing[None] = d_hat + 1.0, 0, 0
+        ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids = self.vertices(q)
             d, n, c = self.gap(x, ids)
