@@ -23,9 +23,8 @@ D along the step closes at most D a, so a <= SAFETY d0 / D keeps it apart. The s
 the pairs for the line search: every pair within d_hat + 2 max_i |h d_i| of the accepted
 iterate, the only ones that can come closer than d_hat along the step.
 
-Broad phase: a uniform grid hashed into `table` cells, rebuilt at every search. A cell is at
-least as wide as every triangle's box grown by the search radius, so each triangle touches at
-most 8 cells and a vertex only looks in its own: O(n) work.
+The candidates come from a broad phase (fem/implicit/broad_phase.py, a spatial hash: O(n)),
+which also groups the bodies joined by pairs into islands, each with its own line search.
 
 Fields (n vertices, t triangles of the capacity, P pairs):
     triangles (t, 3)       the surface triangles' global vertex ids, outward (counter-clockwise)
@@ -33,7 +32,7 @@ Fields (n vertices, t triangles of the capacity, P pairs):
     distance ()            d_hat, m
     friction ()            mu, Coulomb's coefficient between bodies
     reach ()               m: the most a line search moves a vertex before its step is cut
-    island (bodies,)       the lowest body id joined to a body by candidate pairs (its line search's)
+    island (bodies,)       the lowest body id joined to a body by candidate pairs (the broad phase's)
     pairs (P, 2)           candidate (vertex, triangle) pairs of the current search
     pair_weights (P, 4)    (1, -w0, -w1, -w2) at the last evaluation
     pair_matrix (P, 3x3)   h^2 k m_p n n^T while touching, else 0 (kg/s)
@@ -49,47 +48,12 @@ Fields (n vertices, t triangles of the capacity, P pairs):
 import numpy as np
 import taichi as ti
 
+from fem.implicit.broad_phase import BroadPhase, closest_weights
 from fem.implicit.effects import FRICTION_SPEED
 
 SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
 PAIRS_PER_VERTEX = 64        # room for candidate pairs; more is reported as an overflow
 TOUCHING = 1e-9              # m: pairs closer than this cannot be kept apart by a step bound
-
-
-def next_power_of_two(n):
-    return 1 << max(10, (n - 1).bit_length())
-
-
-@ti.func
-def closest_weights(p, a, b, c):
-    """Barycentric weights (w0, w1, w2) of the point of triangle (a, b, c) closest to p
-    (Ericson, Real-Time Collision Detection, 5.1.5)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = ab.dot(ap), ac.dot(ap)
-    bp, cp = p - b, p - c
-    d3, d4 = ab.dot(bp), ac.dot(bp)
-    d5, d6 = ab.dot(cp), ac.dot(cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    w = ti.Vector([0.0, 0.0, 0.0])
-    if d1 <= 0 and d2 <= 0:                                   # vertex region a
-        w = ti.Vector([1.0, 0.0, 0.0])
-    elif d3 >= 0 and d4 <= d3:                                # vertex region b
-        w = ti.Vector([0.0, 1.0, 0.0])
-    elif d6 >= 0 and d5 <= d6:                                # vertex region c
-        w = ti.Vector([0.0, 0.0, 1.0])
-    elif vc <= 0 and d1 >= 0 and d3 <= 0:                     # edge ab
-        s = d1 / (d1 - d3)
-        w = ti.Vector([1.0 - s, s, 0.0])
-    elif vb <= 0 and d2 >= 0 and d6 <= 0:                     # edge ac
-        s = d2 / (d2 - d6)
-        w = ti.Vector([1.0 - s, 0.0, s])
-    elif va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:           # edge bc
-        s = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        w = ti.Vector([0.0, 1.0 - s, s])
-    else:                                                     # the face
-        total = va + vb + vc
-        w = ti.Vector([va / total, vb / total, vc / total])
-    return w
 
 
 @ti.data_oriented
@@ -100,7 +64,6 @@ class Contact:
         n, t = model.capacity.vertices, 4 * model.capacity.tets
         self.model, self.effects = model, effects
         self.serial_vertices = switches.serial_vertices
-        self.table_size = next_power_of_two(2 * t)
         self.pair_capacity = PAIRS_PER_VERTEX * n
         self.triangles = ti.Vector.field(3, ti.i32, t)
         self.triangle_count = ti.field(ti.i32, ())
@@ -109,13 +72,11 @@ class Contact:
         self.distance = ti.field(float, ())
         self.friction = ti.field(float, ())
         self.reach = ti.field(float, ())
-        self.cell = ti.field(float, ())
-        self.cell_count = ti.field(ti.i32, self.table_size)
-        self.cell_start = ti.field(ti.i32, self.table_size + 1)
-        self.cell_triangles = ti.field(ti.i32, 8 * t)
         self.pairs = ti.Vector.field(2, ti.i32, self.pair_capacity)
         self.pair_count = ti.field(ti.i32, ())
         self.overflow = ti.field(ti.i32, ())
+        self.broad = BroadPhase(model, self, switches)
+        self.island = self.broad.island
         self.pair_weights = ti.Vector.field(4, float, self.pair_capacity)
         self.pair_matrix = ti.Matrix.field(3, 3, float, self.pair_capacity)
         self.sticks = ti.Vector.field(2, ti.i32, self.pair_capacity)
@@ -128,7 +89,6 @@ class Contact:
         self.product = ti.Vector.field(3, float, n)
         self.block = ti.Matrix.field(3, 3, float, n)
         self.energy = ti.field(ti.f64, n)
-        self.island = ti.field(ti.i32, model.capacity.bodies)
         self.step_limit = ti.field(float, ())
         self.largest_move = ti.field(float, ())
         self.smallest = ti.field(float, ())
@@ -147,116 +107,6 @@ class Contact:
         self.reach[None] = max(float(edges.mean()), 4.0 * contact.distance)
         self.distance[None], self.friction[None] = contact.distance, contact.friction
         self.stick_count[None] = 0
-
-    # ------------------------------------------------------------ broad phase
-
-    @ti.func
-    def cell_of(self, p):
-        return ti.floor(p / self.cell[None]).cast(ti.i32)
-
-    @ti.func
-    def bucket(self, c):
-        """The table entry of grid cell c (a spatial hash, Teschner et al. 2003)."""
-        h = (c[0] * 73856093) ^ (c[1] * 19349663) ^ (c[2] * 83492791)
-        return h & ti.static(self.table_size - 1)
-
-    @ti.func
-    def triangle_cells(self, x: ti.template(), k, radius):
-        """The lowest and highest grid cells of triangle k's box grown by radius."""
-        t = self.triangles[k]
-        lo = ti.min(x[t[0]], x[t[1]], x[t[2]]) - radius
-        hi = ti.max(x[t[0]], x[t[1]], x[t[2]]) + radius
-        return self.cell_of(lo), self.cell_of(hi)
-
-    @ti.func
-    def first_time(self, lo, hi, c):
-        """1 where no cell of the triangle's box [lo, hi] before c (in loop order) has c's
-        bucket: each triangle goes into a bucket once."""
-        b, first = self.bucket(c), 1
-        for i, j, k in ti.ndrange(2, 2, 2):
-            e = lo + ti.Vector([i, j, k])
-            before = (e[0] < c[0]) or (e[0] == c[0] and (e[1] < c[1] or (e[1] == c[1] and e[2] < c[2])))
-            if (e <= hi).all() and before and self.bucket(e) == b:
-                first = 0
-        return first
-
-    @ti.func
-    def find_pairs(self, x: ti.template(), radius):
-        """pairs <- every (surface vertex, triangle not containing it) closer than radius at x."""
-        nt = self.triangle_count[None]
-        self.cell[None] = 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for k in range(nt):
-            t = self.triangles[k]
-            size = ti.max(x[t[0]], x[t[1]], x[t[2]]) - ti.min(x[t[0]], x[t[1]], x[t[2]])
-            ti.atomic_max(self.cell[None], size.max() + 2.0 * radius)
-        ti.loop_config(serialize=self.serial_vertices)
-        for b in range(self.table_size):
-            self.cell_count[b] = 0
-        ti.loop_config(serialize=self.serial_vertices)
-        for k in range(nt):
-            lo, hi = self.triangle_cells(x, k, radius)
-            for i, j, l in ti.ndrange(2, 2, 2):
-                c = lo + ti.Vector([i, j, l])
-                if (c <= hi).all() and self.first_time(lo, hi, c):
-                    ti.atomic_add(self.cell_count[self.bucket(c)], 1)
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            total = 0
-            for b in range(self.table_size):
-                self.cell_start[b] = total
-                total += self.cell_count[b]
-            self.cell_start[self.table_size] = total
-        ti.loop_config(serialize=self.serial_vertices)
-        for b in range(self.table_size):
-            self.cell_count[b] = 0
-        ti.loop_config(serialize=self.serial_vertices)
-        for k in range(nt):
-            lo, hi = self.triangle_cells(x, k, radius)
-            for i, j, l in ti.ndrange(2, 2, 2):
-                c = lo + ti.Vector([i, j, l])
-                if (c <= hi).all() and self.first_time(lo, hi, c):
-                    b = self.bucket(c)
-                    self.cell_triangles[self.cell_start[b] + ti.atomic_add(self.cell_count[b], 1)] = k
-        self.pair_count[None], self.overflow[None] = 0, 0
-        ti.loop_config(serialize=self.serial_vertices)
-        for s in range(self.surface_count[None]):
-            i = self.surface[s]
-            c = self.cell_of(x[i])
-            b = self.bucket(c)
-            for slot in range(self.cell_start[b], self.cell_start[b + 1]):
-                k = self.cell_triangles[slot]
-                t = self.triangles[k]
-                lo, hi = self.triangle_cells(x, k, radius)
-                if (t != i).all() and (c >= lo).all() and (c <= hi).all():
-                    w = closest_weights(x[i], x[t[0]], x[t[1]], x[t[2]])
-                    if (x[i] - (w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]])).norm() < radius:
-                        slot_out = ti.atomic_add(self.pair_count[None], 1)
-                        if slot_out < ti.static(self.pair_capacity):
-                            self.pairs[slot_out] = ti.Vector([i, k])
-                        else:
-                            self.overflow[None] = 1
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            self.pair_count[None] = ti.min(self.pair_count[None], ti.static(self.pair_capacity))
-
-    @ti.func
-    def find_islands(self):
-        """island[b] <- the lowest body id that body b is joined to through candidate pairs: bodies
-        in different islands cannot meet in this line search, so each island searches alone."""
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            for b in range(self.model.body_count[None]):
-                self.island[b] = b
-            changed = 1
-            while changed:
-                changed = 0
-                for q in range(self.pair_count[None]):
-                    ids = self.vertices(q)
-                    a, c = self.model.vertex_body[ids[0]], self.model.vertex_body[ids[1]]
-                    low = ti.min(self.island[a], self.island[c])
-                    if self.island[a] != low or self.island[c] != low:
-                        self.island[a], self.island[c], changed = low, low, 1
 
     # ------------------------------------------------------------ one pair
 
@@ -365,7 +215,7 @@ class Contact:
     @ti.kernel
     def find(self, x: ti.template()):
         """The pairs closer than d_hat at x (the step's start: its energy BEFORE)."""
-        self.find_pairs(x, self.distance[None])
+        self.broad.find_pairs(x, self.distance[None])
 
     @ti.kernel
     def start(self, x: ti.template(), v: ti.template(), h: float, body_E: ti.template()):
@@ -396,7 +246,7 @@ class Contact:
             i = self.surface[s]
             ti.atomic_max(self.largest_move[None], (x[i] - x_n[i]).norm())
         D = ti.min(self.largest_move[None], self.reach[None])
-        self.find_pairs(x_n, self.distance[None] + 2.0 * D)
+        self.broad.find_pairs(x_n, self.distance[None] + 2.0 * D)
         self.step_limit[None] = float(self.largest_move[None] <= self.reach[None])
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
@@ -424,8 +274,8 @@ class Contact:
         D, limit = self.largest_move[None], 1.0
         if D > self.reach[None]:
             limit = self.reach[None] / D
-        self.find_pairs(x, self.distance[None] + 2.0 * limit * D)
-        self.find_islands()
+        self.broad.find_pairs(x, self.distance[None] + 2.0 * limit * D)
+        self.broad.find_islands()
         self.step_limit[None] = limit
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
@@ -454,7 +304,7 @@ class Contact:
     @ti.kernel
     def find_within(self, x: ti.template(), radius: float):
         """pairs <- every pair closer than radius at x."""
-        self.find_pairs(x, radius)
+        self.broad.find_pairs(x, radius)
 
     @ti.func
     def share_energy(self, x: ti.template()):

@@ -66,10 +66,7 @@ class Effects:
         self.plane = ti.field(float, n if self.has_ground else 1)
         self.contact_hessian = ti.Vector.field(4, float, n if self.has_ground else 1)
         self.has_contact = switches.contact                  # between bodies: fem/implicit/contact.py
-        self.contact = None
-        if self.has_contact:
-            from fem.implicit.contact import Contact     # it reads this module's constants
-            self.contact = Contact(model, self, switches)
+        self.contact = None                                  # the solver adds its Contact where it is on
 
     def load(self, effects):
         """A scene's effects (fem.scene.Effects); alpha and beta are also kept for the host."""

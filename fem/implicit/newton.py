@@ -99,8 +99,7 @@ class Newton:
         self.body_momentum = ti.field(ti.f64, nb)
         self.body_speed_floor = ti.field(ti.f64, nb)
         self.from_guess = False           # the step's first iterate is its guess (else v = 0)
-        if switches.contact:              # per island: E new, E accepted (+ round-off), slope, step
-            self.island_sums = ti.Vector.field(4, ti.f64, nb)
+        self.islands = None               # the solver adds Islands where contact couples bodies
 
     def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
@@ -290,7 +289,7 @@ class Newton:
             self.body_step[b] = self.searching[b] * largest
             count += self.searching[b]
         if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
-            count = self.search_together(tolerance, largest)
+            count = self.islands.search_together(tolerance, largest)
         self.step_along(h, 1, int(count > 0))                 # the first trial
         return count
 
@@ -312,7 +311,7 @@ class Newton:
         self.potential.iterate_energy(h, 1)
         left = 0
         if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
-            left = self.armijo_together()
+            left = self.islands.armijo()
         else:
             left = self.armijo()
         self.step_along(h, 1, int(left > 0))                  # none left: x, v stay the accepted trial
@@ -341,60 +340,6 @@ class Newton:
                 # sqrt(epsilon), 3e-4 in f32, where E can no longer tell better from worse
                 if E[b] <= self.body_E_accepted[b] + ARMIJO * self.body_step[b] * self.body_slope[b] \
                         + self.body_resolution[b]:
-                    self.searching[b] = 0
-                else:
-                    self.body_step[b] *= 0.5
-                    left += 1
-        return left
-
-    @ti.func
-    def search_together(self, tolerance, largest):
-        """`start_search` where contact couples the bodies: the bodies of one island
-        (Contact.find_islands) search together, from a = largest, where their summed slope
-        descends by more than the round-off of their summed E or one of them has not converged.
-        Returns how many bodies search."""
-        island, gradient = ti.static(self.effects.contact.island, self.potential.body_gradient)
-        scale, floor = ti.static(self.potential.body_scale, self.potential.body_floor)
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.island_sums[b] = ti.Vector.zero(ti.f64, 4)
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):  # slope, resolution, unconverged bodies
-            unconverged = gradient[b] > tolerance * tolerance * scale[b] + floor[b]
-            self.island_sums[island[b]] += ti.Vector([self.body_slope[b], self.body_resolution[b],
-                                                      ti.cast(unconverged, ti.f64), 0.0])
-        count = 0
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            s = self.island_sums[island[b]]
-            self.searching[b] = int(s[0] < 0 and (-s[0] > s[1] or s[2] > 0))
-            self.body_step[b] = self.searching[b] * largest
-            count += self.searching[b]
-        return count
-
-    @ti.func
-    def armijo_together(self):
-        """`armijo` where contact couples the bodies: E is no longer a sum of independent E_b, so
-        the bodies of one island (joined by contact pairs, Contact.find_islands) share one step
-        and one test on their summed E (those that do not search keep their iterate, and a pair's
-        terms count once). Returns how many bodies still search."""
-        E, island = ti.static(self.potential.body_E, self.effects.contact.island)
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.island_sums[b] = ti.Vector.zero(ti.f64, 4)
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):   # E_new, E_accepted + resolution, slope, a
-            k = island[b]
-            self.island_sums[k] += ti.Vector([E[b], self.body_E_accepted[b] + self.body_resolution[b],
-                                              self.body_slope[b] * self.searching[b], 0.0])
-            if self.searching[b]:
-                self.island_sums[k][3] = self.body_step[b]
-        left = 0
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            if self.searching[b]:
-                s = self.island_sums[island[b]]
-                if s[0] <= s[1] + ARMIJO * s[3] * s[2]:
                     self.searching[b] = 0
                 else:
                     self.body_step[b] *= 0.5

@@ -14,9 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from fem.implicit.contact import Contact
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
 from fem.implicit.integrators import TRAPEZOIDAL, History, chosen
+from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
 from fem.implicit.potential import ROUNDOFF, IncrementalPotential
@@ -86,12 +88,16 @@ class ImplicitSolver:
         self.rotations = Rotations(model, self.sleep, switches)
         self.elasticity = Elasticity(model, self.rotations, self.sleep, switches)
         self.effects = Effects(model, self.elasticity, self.sleep, switches)
+        if switches.contact:                                  # between bodies, part of the effects
+            self.effects.contact = Contact(model, self.effects, switches)
         self.potential = IncrementalPotential(model, self.elasticity, self.rotations, self.effects, self.sleep,
                                               switches)
         self.preconditioning = Preconditioner(model, self.rotations, self.effects, self.sleep, switches)
         self.linear = LinearSolver(model, self.potential, self.elasticity, self.preconditioning, self.effects,
                                    self.sleep, switches)
         self.newton = Newton(model, self.potential, self.linear, self.rotations, self.effects, self.sleep, switches)
+        if switches.contact:                                  # bodies that contact couples search together
+            self.newton.islands = Islands(model, self.newton, self.effects.contact)
         self.safeguards = Safeguards(model, self.elasticity, self.effects, self.sleep, switches)
         self.history = History(model, self.sleep, switches)
         self.x_end = ti.Vector.field(3, float, model.capacity.vertices)   # m: where the last step ended
