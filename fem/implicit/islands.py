@@ -25,7 +25,7 @@ class Islands:
     @ti.func
     def search_together(self, tolerance, largest):
         """Newton.start_search where contact couples the bodies: the bodies of one island
-        (Contact.find_islands) search together, from a = largest, where their summed slope
+        (BroadPhase.find_islands) search together, from a = largest, where their summed slope
         descends by more than the round-off of their summed E or one of them has not converged.
         Returns how many bodies search."""
         island, gradient = ti.static(self.contact.island, self.newton.potential.body_gradient)
