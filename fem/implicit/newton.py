@@ -117,7 +117,7 @@ class Newton:
         while out.rho > 1.0 and out.newton_iters < settings.max_newton:
             if quadratic:
                 target = 1.0
-            elif self.from_guess and not self.effects.has_contact:   # room under the tolerance for one iteration
+            elif self.from_guess:       # room under the tolerance for what one iteration leaves
                 target = FIRST_TARGET if out.newton_iters == 0 else 1.0
             else:
                 target = max(1.0, FORCING ** 2 * out.rho)
