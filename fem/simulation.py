@@ -181,6 +181,10 @@ class Simulation:
         if row["smallest_distance"] is not None:
             record["smallest_distance"] = min(record["smallest_distance"] or smallest, smallest)
         record["interpenetrating_steps"] += int(row["interpenetrating"] > 0)
+        if contact.overflow[None] and not record.get("warned_overflow"):
+            print(f"warning: step {self.steps}: more contact pairs than room for them "
+                  f"({contact.pair_capacity}); some were dropped", file=sys.stderr)
+            record["warned_overflow"] = True
         return row
 
     @property

@@ -1,4 +1,4 @@
-"""Contact between bodies, and of a body with itself: an energy inside E(v) (method.md, section 6b).
+"""Contact between bodies, and of a body with itself: an energy inside E(v) (method.md, section 6).
 
 Each surface vertex p and each surface triangle t = (t0, t1, t2) that does not contain it, of
 another body or of the same one, are a pair. With d = |p - c| the distance from p to the
@@ -52,7 +52,7 @@ from fem.implicit.broad_phase import BroadPhase, closest_weights
 from fem.implicit.effects import FRICTION_SPEED
 
 SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
-PAIRS_PER_VERTEX = 64        # room for candidate pairs; more is reported as an overflow
+PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
 TOUCHING = 1e-9              # m: pairs closer than this cannot be kept apart by a step bound
 
 
