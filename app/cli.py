@@ -168,6 +168,9 @@ def add_scene_options(p, scene_required=True):
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene value, e.g. --set body.soft.mesh.cells=[8,8,8]; "
                         "file paths in it are relative to the current folder")
+    p.add_argument("--contact", action="store_true",
+                   help="contact between bodies and within each: the scene's [effects] contact, or "
+                        "distance 0.01 m and no friction where it has none")
     p.add_argument("--allow-large", action="store_true",
                    help="lift the size limits (the tets half the backend's memory holds, 8192 pixels a side)")
     add_common(p)

@@ -73,6 +73,8 @@ class Measure:
             if not self.needs_svd[e]:
                 self.add_energy(e, F, R)
         g = self.gravity[None]
+        if ti.static(self.effects.has_contact):
+            self.effects.contact.share_energy(x)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
@@ -81,6 +83,8 @@ class Measure:
             self.potential[b] -= m * g.dot(ti.cast(x[i], ti.f64))
             if ti.static(self.has_ground):
                 self.contact[b] += self.effects.contact_energy(i, x[i])
+            if ti.static(self.effects.has_contact):
+                self.contact[b] += self.effects.contact.energy[i]     # its share of the pairs' penalty
         return left
 
     @ti.kernel

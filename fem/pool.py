@@ -18,8 +18,11 @@ from dataclasses import dataclass
 import taichi as ti
 
 from fem.coarse import Patches
+from fem.implicit.broad_phase import BroadPhase
+from fem.implicit.contact import Contact
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
+from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
 from fem.implicit.potential import IncrementalPotential
@@ -77,8 +80,8 @@ def make(capacity, switches):
 def compiled_kernels():
     """How many kernels Taichi has compiled (or loaded from its offline cache) in this
     process for the engine: one per kernel and per set of parts it ran on."""
-    classes = (Model, ImplicitSolver, Sleep, Rotations, Elasticity, Effects, IncrementalPotential, Preconditioner,
-               LinearSolver, Newton, Safeguards, Measure, Patches)
+    classes = (Model, ImplicitSolver, Sleep, Rotations, Elasticity, Effects, Contact, BroadPhase, Islands,
+               IncrementalPotential, Preconditioner, LinearSolver, Newton, Safeguards, Measure, Patches)
     kernels = [f for c in classes for f in vars(c).values() if hasattr(f, "_primal")]
     return sum(len(k._primal.compiled_kernels) for k in kernels)
 

@@ -95,12 +95,21 @@ class Impulse:
 
 
 @dataclass
+class ContactEffect:
+    """Contact between bodies and of a body with itself (fem/implicit/contact.py)."""
+
+    distance: float = 0.01              # contact thickness d_hat, m: the penalty acts on pairs closer than this
+    friction: float = 0.0               # Coulomb's coefficient mu between surfaces (>= 0)
+
+
+@dataclass
 class Effects:
     """Which effects a scene switches on; an effect that is off costs nothing."""
 
     gravity: tuple | None = None        # (gx, gy, gz) m/s^2
     ground: float | None = None         # ground plane height y (m)
     friction: float = 0.5               # Coulomb's coefficient mu on the ground (>= 0)
+    contact: ContactEffect | None = None   # between bodies and within one
     alpha: float = 0.0                  # Rayleigh damping D = alpha M + beta K
     beta: float = 0.0
 

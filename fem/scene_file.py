@@ -6,6 +6,7 @@ the `scenes` package; the meshes come from the `build_mesh` the caller passes.
 """
 
 import difflib
+import math
 import tomllib
 from pathlib import Path
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from fem import limits
 from fem.errors import FemError
-from fem.scene import (METHODS, Body, Effects, Impulse, Initial, Material, Scene, Selection,
+from fem.scene import (METHODS, Body, ContactEffect, Effects, Impulse, Initial, Material, Scene, Selection,
                        SolverSettings, axis_angle_quaternion, check_placed, place_mesh, select_vertices)
 
 
@@ -143,7 +144,7 @@ def read_toml_scene(path, build_mesh, data=None):
         description=top.get("description", "str", ""),
         path=str(path),
         bodies=bodies,
-        effects=read_effects(top.table("effects", ["gravity", "ground", "damping"]), path),
+        effects=read_effects(top.table("effects", ["gravity", "ground", "contact", "damping"]), path),
         solver=read_solver(top.table("solver", ["dt", "step", "integrator", "rho_infinity", "max_newton", "newton_tolerance", "method", "tolerance",
                                                  "max_iterations", "jacobi_omega", "preconditioner", "rotations", "sleep"])),
     )
@@ -287,12 +288,27 @@ def read_effects(t, path):
         if not 0 <= e.friction <= MAX_FRICTION:
             raise FemError(f"{path}: effects.ground.friction (Coulomb's coefficient) must be in "
                            f"[0, {MAX_FRICTION:g}], got {e.friction}")
+    if "contact" in t:
+        e.contact = read_contact(t.table("contact", ["distance", "friction"]), path)
     if "damping" in t:
         d = t.table("damping", ["alpha", "beta"])
         e.alpha, e.beta = d.get("alpha", "float", 0.0), d.get("beta", "float", 0.0)
         if e.alpha < 0 or e.beta < 0:
             raise FemError(f"{path}: effects.damping alpha and beta must be >= 0")
     return e
+
+
+def read_contact(t, path):
+    """[effects] contact = { distance = d_hat (m, > 0), friction = mu }."""
+    c = ContactEffect()
+    c.distance = t.get("distance", "float", c.distance)
+    c.friction = t.get("friction", "float", c.friction)
+    if not (c.distance > 0 and math.isfinite(c.distance)):
+        raise FemError(f"{path}: effects.contact.distance (the contact thickness, m) must be > 0, got {c.distance}")
+    if not 0 <= c.friction <= MAX_FRICTION:
+        raise FemError(f"{path}: effects.contact.friction (Coulomb's coefficient) must be in "
+                       f"[0, {MAX_FRICTION:g}], got {c.friction}")
+    return c
 
 
 def read_solver(t):

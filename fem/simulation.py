@@ -119,6 +119,7 @@ class Simulation:
         self.steps = 0
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
         self.last = {}
+        self.contact_record = {"most_pairs": 0, "smallest_distance": None, "interpenetrating_steps": 0}
 
     @property
     def settings(self):
@@ -161,7 +162,30 @@ class Simulation:
                      "step_kind": self.step_kind, **asdict(info),
                      "corotational": [b.method == "corotational" for b in self.model.bodies],
                      "asleep": self.asleep}
+        if self.solver.switches.contact:
+            self.last.update(self.contact_stats())
         return self.last
+
+    def contact_stats(self):
+        """Contact between bodies now (fem/implicit/contact.py): contact_pairs, the pairs closer than
+        the contact distance; smallest_distance (m, None without a pair near); interpenetrating, the
+        pairs whose vertex is behind its triangle's face. Also kept over the run in contact_record."""
+        contact = self.solver.effects.contact
+        contact.measure(self.state.x)
+        smallest = float(contact.smallest[None])
+        row = {"contact_pairs": int(contact.touching[None]),
+               "smallest_distance": smallest if smallest <= float(contact.distance[None]) else None,
+               "interpenetrating": int(contact.crossing[None])}
+        record = self.contact_record
+        record["most_pairs"] = max(record["most_pairs"], row["contact_pairs"])
+        if row["smallest_distance"] is not None:
+            record["smallest_distance"] = min(record["smallest_distance"] or smallest, smallest)
+        record["interpenetrating_steps"] += int(row["interpenetrating"] > 0)
+        if contact.overflow[None] and not record.get("warned_overflow"):
+            print(f"warning: step {self.steps}: more contact pairs than room for them "
+                  f"({contact.pair_capacity}); some were dropped", file=sys.stderr)
+            record["warned_overflow"] = True
+        return row
 
     @property
     def step_kind(self):

@@ -14,6 +14,7 @@ from assets import MESH_FILE_SUFFIXES, build_mesh, mesh_file_scene
 from fem.coursework import read_coursework_scene
 from fem import limits
 from fem.errors import FemError, excerpt
+from fem.scene import ContactEffect
 from fem.scene_file import read_toml_data, read_toml_scene
 
 SCENES_DIR = Path(__file__).resolve().parent
@@ -28,7 +29,7 @@ def builtin_scenes():
     return out
 
 
-def load_scene(ref, overrides=None):
+def load_scene(ref, overrides=None, contact=False):
     """A Scene from a built-in name, a .toml path, a coursework *-scene.txt path, or a mesh file.
 
     A mesh file (a surface: .obj .stl .ply .off, tetrahedralised and cached; or tets:
@@ -37,17 +38,22 @@ def load_scene(ref, overrides=None):
     overrides: ["key.path=value", ...] applied to a TOML scene before it is read,
     e.g. "solver.dt=0.01" or "body.soft.mesh.cells=[8, 8, 8]" (a body by name or index,
     or * for every body); paths in them are relative to the current folder.
+    contact: switch on contact between bodies and within each (`[effects] contact`), with the
+    scene's own settings where it has them, else the defaults (fem.scene.ContactEffect).
     """
     path = Path(ref)
     suffix = path.suffix.lower()
     if suffix == ".txt":
         if overrides:
             raise FemError(f"{path}: --set works on TOML scenes and mesh files only")
-        return read_coursework_scene(path)
+        scene = read_coursework_scene(path)
+        if contact and scene.effects.contact is None:
+            scene.effects.contact = ContactEffect()
+        return scene
     if suffix in MESH_FILE_SUFFIXES:
         if not path.is_file():
             raise FemError(f"{path}: no such mesh file")
-        return read_with_overrides(path, mesh_file_scene(path), overrides or [])
+        return read_with_overrides(path, with_contact(mesh_file_scene(path), contact), overrides or [])
     if suffix != ".toml":
         builtin = SCENES_DIR / f"{ref}.toml"
         if not builtin.exists():
@@ -59,7 +65,14 @@ def load_scene(ref, overrides=None):
             also = f" (did you mean {hint[0]!r}?)" if hint else f"; built-in scenes: {', '.join(names)}"
             raise FemError(f"{ref}: no such scene file or built-in scene{also}")
         path = builtin
-    return read_with_overrides(path, read_toml_data(path), overrides or [])
+    return read_with_overrides(path, with_contact(read_toml_data(path), contact), overrides or [])
+
+
+def with_contact(data, contact):
+    """Raw scene data with `[effects] contact` (an empty table: the defaults) where contact asks for it."""
+    if contact and isinstance(data.get("effects", {}), dict):
+        data.setdefault("effects", {}).setdefault("contact", {})
+    return data
 
 
 def read_with_overrides(path, data, overrides):

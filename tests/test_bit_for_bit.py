@@ -5,6 +5,7 @@ hard-case group's end state, is hashed (sha256 of the float arrays' bytes) and c
 `step_hashes.json`. The compiled kernels' arithmetic depends on the processor (LLVM picks
 vector instructions and fused multiply-adds for it) and on Taichi's version, so the file keys
 its hashes by both; on another machine the test skips and says how to record them there.
+A scene added since the hashes were recorded is reported, not compared.
 A surface tetrahedralised at first use (the bunny) is not the same mesh twice (wildmeshing
 is not deterministic): each scene's hash is stored with its meshes' digest, and a scene
 whose cached mesh was rebuilt since is reported, not compared.
@@ -108,9 +109,11 @@ def test_results_are_the_recorded_ones_bit_for_bit(precision):
         pytest.skip(f"no hashes recorded for {key!r} (record them with RECORD_STEP_HASHES=1, "
                     "see this file's docstring)")
     expected = stored[key]
-    assert sorted(got) == sorted(expected)
+    assert set(expected) <= set(got)                  # a scene added since (two_boxes) is not compared yet
     rebuilt = sorted(name for name in expected if got[name].split(":")[0] != expected[name].split(":")[0])
     changed = sorted(name for name in expected if name not in rebuilt and got[name] != expected[name])
     assert not changed, f"{len(changed)} of {len(expected)} end states changed: {changed}"
     if rebuilt:
         print(f"not compared, their meshes were tetrahedralised again since: {rebuilt}")
+    if set(got) - set(expected):
+        print(f"not compared, added since the hashes were recorded: {sorted(set(got) - set(expected))}")

@@ -11,11 +11,11 @@ from conftest import ROOT
 import fem
 import scenes
 
-BUILTIN = ["bunny", "cube", "cube86", "epcot", "fertility", "torsion"]
+BUILTIN = ["bunny", "cube", "cube86", "epcot", "fertility", "torsion", "two_boxes"]
 COURSEWORK = ["bunny", "single-bunny", "cube86", "cylinder", "epcot", "fertility", "student-cube", "student-torsion"]
 
 
-def test_the_six_seed_scenes_are_listed_with_descriptions():
+def test_the_built_in_scenes_are_listed_with_descriptions():
     found = scenes.builtin_scenes()
     assert sorted(found) == BUILTIN
     assert all(len(d) > 40 for d in found.values())

@@ -116,7 +116,7 @@ def run(args) -> int:
 def simulate_and_write(args, out: Path, video: Path | None, width: int, height: int) -> int:
     """Build the simulation and the view, then write the frames into the locked folder out."""
     device.start(args)
-    scene = scenes.load_scene(args.scene, overrides=args.set)
+    scene = scenes.load_scene(args.scene, overrides=args.set, contact=getattr(args, "contact", False))
     sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
                          solver=args.solver, dt=args.dt, tolerance=args.tol,
                          max_iterations=args.max_iters, step=args.step,

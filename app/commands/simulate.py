@@ -23,7 +23,7 @@ from fem.mesh import mesh_quality
 
 def build_simulation(args):
     """The Simulation the common options ask for (scene, method, solver overrides, --set)."""
-    scene = scenes.load_scene(args.scene, overrides=args.set)
+    scene = scenes.load_scene(args.scene, overrides=args.set, contact=getattr(args, "contact", False))
     return fem.Simulation(scene, method=args.method, solver=args.solver, dt=args.dt,
                           tolerance=args.tol, max_iterations=args.max_iters, step=args.step,
                           integrator=args.integrator)
@@ -166,4 +166,10 @@ def summary(sim, rows):
     lines.append(f"energy: kinetic {final['kinetic_energy']:.4g} J, elastic {final['elastic_energy']:.4g} J, "
                  f"total {final['total_energy']:.4g} J; "
                  f"inverted tets {final['inverted_tets']}")
+    if sim.solver.switches.contact:
+        record, smallest = sim.contact_record, sim.contact_record["smallest_distance"]
+        lines.append(f"contact (distance {sim.scene.effects.contact.distance:g} m): at most {record['most_pairs']} "
+                     f"pairs touching, smallest distance "
+                     f"{'none closer than the distance' if smallest is None else f'{smallest:.3g} m'}, "
+                     f"{record['interpenetrating_steps']} steps ended with interpenetrating pairs")
     return "\n".join(lines)

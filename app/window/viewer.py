@@ -81,7 +81,8 @@ class Viewer(Controls, Panel):
         compiles every kernel its steps need (a scene of the same kind: none)."""
         self.show_loading(ref)
         args = self.args
-        scene = scenes.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None)
+        scene = scenes.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None,
+                                   contact=getattr(args, "contact", False))
         if args.compare:
             # A gap as wide as the scene, so that a linear copy growing as it turns stays clear of its twin.
             width = np.ptp(np.concatenate([b.mesh.vertices for b in scene.bodies])[:, 0])

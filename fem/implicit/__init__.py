@@ -24,11 +24,15 @@ One module per part, each owning its fields and kernels; `ImplicitSolver` compos
     linear.py          PCG and Jacobi iteration on H d = -grad E
     preconditioner.py  block Jacobi and the coarse level (fem/coarse.py)
     effects.py         gravity, damping, pins and ground contact
+    contact.py         contact between bodies and within one: the pairs' penalty, friction, step bound
+    broad_phase.py     contact's candidate pairs (a spatial hash) and islands
+    islands.py         the line search of bodies that contact couples
     sleep.py           which bodies the step moves
     safeguards.py      finite results, momentum, no energy gain
 
-Effects a scene leaves off are not compiled: gravity, pins, ground contact and stiffness
-damping are `ti.static` branches fixed when the solver is made (`Switches`), and rotations
+Effects a scene leaves off are not compiled: gravity, pins, ground contact, contact between
+bodies and stiffness damping are `ti.static` branches fixed when the solver is made (`Switches`), and rotations
 are only extracted while some body is corotational. Per-vertex sums gather over the model's
-adjacency (no atomics), so every run is the same bit for bit.
+adjacency (no atomics), so every run is the same bit for bit; contact's pair sums use atomics,
+serial on the small meshes whose other loops are (the same bit for bit there too).
 """

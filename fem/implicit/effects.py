@@ -66,6 +66,8 @@ class Effects:
         self.normal_force = ti.field(float, n if self.has_ground else 1)
         self.plane = ti.field(float, n if self.has_ground else 1)
         self.contact_hessian = ti.Vector.field(4, float, n if self.has_ground else 1)
+        self.has_contact = switches.contact                  # between bodies: fem/implicit/contact.py
+        self.contact = None                                  # the solver adds its Contact where it is on
 
     def load(self, effects):
         """A scene's effects (fem.scene.Effects); alpha and beta are also kept for the host."""
@@ -74,6 +76,8 @@ class Effects:
         self.gravity[None] = effects.gravity or (0.0, 0.0, 0.0)
         self.ground[None] = effects.ground or 0.0
         self.friction[None] = effects.friction
+        if self.has_contact:
+            self.contact.load(effects.contact)
 
     @property
     def damped(self):

@@ -78,6 +78,8 @@ class LinearSolver:
         """r <- filtered(rhs) - H d, z <- P r, rz <- r.z, for the first guess d in `solution`.
         Returns the weighted residual sum_i w_b(i) |r_i|^2."""
         self.elasticity.stiffness_pass(self.solution)         # K d, into the corners
+        if ti.static(self.effects.has_contact):
+            self.effects.contact.product_pass(self.solution, self.solution, 0.0, 1)
         rz, rr = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
@@ -119,6 +121,8 @@ class LinearSolver:
             for e in range(n_tets * on):
                 if self.sleep.tet_awake(e):
                     self.elasticity.tet_stiffness(e, self.z, self.p, beta)
+            if ti.static(self.effects.has_contact):
+                self.effects.contact.product_pass(self.z, self.p, beta, on)
             pAp = 0.0
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(n * on):
@@ -159,6 +163,8 @@ class LinearSolver:
         """d += omega P (rhs - H d) (after stiffness_product(d)). Returns the weighted
         |rhs - H d|^2 before the update."""
         rr = 0.0
+        if ti.static(self.effects.has_contact):
+            self.effects.contact.product_pass(self.solution, self.solution, 0.0, 1)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             r = self.effects.filtered(i, self.potential.rhs[i]) - self.potential.apply_H(i, self.solution, cM, cK)
@@ -197,6 +203,8 @@ class LinearSolver:
     @ti.kernel
     def matrix_product(self, u: ti.template(), out: ti.template(), cM: float, cK: float):
         """out <- H u, gathered from the corners after stiffness_product(u)."""
+        if ti.static(self.effects.has_contact):
+            self.effects.contact.product_pass(u, u, 0.0, 1)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             out[i] = self.potential.apply_H(i, u, cM, cK)

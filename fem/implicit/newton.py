@@ -93,6 +93,7 @@ class Newton:
         self.body_momentum = ti.field(ti.f64, nb)
         self.body_speed_floor = ti.field(ti.f64, nb)
         self.from_guess = False           # the step's first iterate is its guess (else v = 0)
+        self.islands = None               # the solver adds Islands where contact couples bodies
 
     def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
@@ -115,7 +116,10 @@ class Newton:
             out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
                                                preconditioner)
             out.newton_iters += 1
-            if self.start_search(tolerance, h) == 0:          # no body has anything left to gain
+            largest = 1.0
+            if self.effects.has_contact:                      # the pairs the search may meet; how far it may go
+                largest = self.effects.contact.prepare_search(p.x, self.linear.solution, h)
+            if self.start_search(tolerance, h, largest) == 0:   # no body has anything left to gain
                 out.settled = True
                 break
             for _ in range(MAX_HALVINGS + 1):                 # the trial iterate: each body's a_b along d
@@ -253,10 +257,11 @@ class Newton:
             self.linear.solution[i] = d
 
     @ti.kernel
-    def start_search(self, tolerance: ti.f64, h: float) -> ti.i32:
+    def start_search(self, tolerance: ti.f64, h: float, largest: float) -> ti.i32:
         """body_slope[b] <- grad_b E . d_b (J, < 0 where d descends). A body whose decrease
         -slope_b is above the round-off of its E_b, or whose gradient has not met the tolerance,
-        searches, from a_b = 1; the others have nothing left to gain (a_b = 0). Returns how many
+        searches, from a_b = largest (1, or less where contact bounds the step); the others have
+        nothing left to gain (a_b = 0). Returns how many
         bodies search. (Near the answer E changes by |grad|^2 / H: in f32 below E's round-off
         from a gradient of about 1e-4 on, where only the gradient still tells how close it is.)"""
         ti.loop_config(serialize=True)
@@ -273,8 +278,10 @@ class Newton:
                                                              + self.potential.body_floor[b])
             self.searching[b] = int(self.body_slope[b] < 0 and (-self.body_slope[b] > self.body_resolution[b]
                                                                or unconverged))
-            self.body_step[b] = self.searching[b]
+            self.body_step[b] = self.searching[b] * largest
             count += self.searching[b]
+        if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
+            count = self.islands.search_together(tolerance, largest)
         self.step_along(h, 1, int(count > 0))                 # the first trial
         return count
 
@@ -294,7 +301,11 @@ class Newton:
         """E_b at the trial iterate, then `armijo`, then the next trial (a body done keeps its
         a_b, and its iterate: the same numbers); returns how many bodies still search."""
         self.potential.iterate_energy(h, 1)
-        left = self.armijo()
+        left = 0
+        if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
+            left = self.islands.armijo()
+        else:
+            left = self.armijo()
         self.step_along(h, 1, int(left > 0))                  # none left: x, v stay the accepted trial
         return left
 

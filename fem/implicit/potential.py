@@ -118,6 +118,8 @@ class IncrementalPotential:
             if ti.static(self.effects.has_ground):
                 e += self.effects.step_contact_energy(i, x[i]) + self.effects.friction_energy(i, v[i], dt)
             self.body_E[self.model.vertex_body[i]] += e
+        if ti.static(self.effects.has_contact):          # the pairs' terms, and their gradient and Hessian
+            self.effects.contact.evaluate(x, v, dt, self.body_E)
 
     @ti.func
     def energy_tets(self, x: ti.template(), v: ti.template(), dt, moving):
@@ -212,6 +214,8 @@ class IncrementalPotential:
             tets = self.elasticity.gather(i)
             if ti.static(self.effects.has_ground):       # with gravity's impulse in the step's scale
                 g += self.effects.contact_force(i, x[i], v[i], dt)
+            if ti.static(self.effects.has_contact):      # from the last energy pass at this iterate
+                g += self.effects.contact.force[i]
             rhs = m * v0[i] + g - (1.0 + dt * self.effects.mass_damping[None]) * m * v[i] - tets
             self.rhs[i] = rhs
             b = self.model.vertex_body[i]
@@ -253,4 +257,6 @@ class IncrementalPotential:
         Hu = cM * self.model.mass[i] * u[i] + cK * self.elasticity.gather(i)
         if ti.static(self.effects.has_ground):
             Hu += self.effects.contact_product(i, u)
+        if ti.static(self.effects.has_contact):          # the pairs' share, from the last product pass
+            Hu += self.effects.contact.product[i]
         return self.effects.filtered(i, Hu)

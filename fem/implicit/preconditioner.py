@@ -121,6 +121,8 @@ class Preconditioner:
                                                                       - h.outer_product(h)))
             if ti.static(self.effects.has_ground):
                 block += self.effects.contact_block(i)
+            if ti.static(self.effects.has_contact):
+                block += self.effects.contact.block[i]
             inv = block.inverse()
             self.block_inverse[i] = ti.Vector([inv[0, 0], inv[0, 1], inv[0, 2],
                                                inv[1, 1], inv[1, 2], inv[2, 2]])

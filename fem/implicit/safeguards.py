@@ -42,6 +42,7 @@ Fields (bodies of the capacity; energies summed in float64):
     body_speed (bodies,)         a trimmed body's velocity factor on the ground (`slowed`)
     body_clearance (bodies,)     m: its lowest vertex's height above the ground at the step's end
     body_kinetic_before (bodies,)  J: its kinetic energy BEFORE the step
+    body_moving (bodies,)        J: its kinetic energy (`rigid_motion`)
 """
 
 import taichi as ti
@@ -90,6 +91,7 @@ class Safeguards:
         self.body_spin_new = ti.Vector.field(3, ti.f64, nb)
         self.body_shift_vector = ti.Vector.field(3, ti.f64, nb)
         self.body_speed = ti.field(ti.f64, nb)
+        self.body_moving = ti.field(ti.f64, nb)
         self.body_clearance = ti.field(float, nb)
         self.body_kinetic_before = ti.field(ti.f64, nb)
         self.forget_band()
@@ -191,8 +193,11 @@ class Safeguards:
             ti.loop_config(serialize=True)
             for b in range(self.model.body_count[None]):     # L about the centre: the conserving target
                 self.body_spin_before[b] = self.body_inertia[b] @ self.body_spin[b]
-                self.body_kinetic_before[b] = self.body_kinetic[b] \
-                    + 0.5 * self.centre_velocity(b).norm_sqr() * self.body_mass[b]
+                self.body_kinetic_before[b] = self.body_moving[b]
+            if ti.static(self.effects.has_contact):          # one island: body 0's entry holds the sum
+                ti.loop_config(serialize=True)
+                for b in range(1, self.model.body_count[None]):
+                    self.body_kinetic_before[0] += self.body_kinetic_before[b]
 
     @ti.func
     def start_band(self):
@@ -240,7 +245,13 @@ class Safeguards:
                 self.body_elastic[body] += elastic
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            self.body_total[when, b], self.body_total_size[when, b] = self.body_elastic[b], self.body_elastic[b]
+            self.body_total[when, b], self.body_total_size[when, b] = 0.0, 0.0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_total[when, self.island(b)] += self.body_elastic[b]
+            self.body_total_size[when, self.island(b)] += self.body_elastic[b]
+        if ti.static(self.effects.has_contact):
+            self.effects.contact.share_energy(x)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             m = ti.cast(self.model.mass[i], ti.f64)
@@ -249,8 +260,10 @@ class Safeguards:
                 potential = -m * ti.cast(self.effects.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
             if ti.static(self.effects.has_ground):
                 kinetic += self.effects.contact_energy(i, x[i])      # stored in the ground's penalty
-            self.body_total[when, self.model.vertex_body[i]] += kinetic + potential
-            self.body_total_size[when, self.model.vertex_body[i]] += kinetic + ti.abs(potential)
+            if ti.static(self.effects.has_contact):
+                kinetic += self.effects.contact.energy[i]             # its share of the pairs' penalty
+            self.body_total[when, self.island(self.model.vertex_body[i])] += kinetic + potential
+            self.body_total_size[when, self.island(self.model.vertex_body[i])] += kinetic + ti.abs(potential)
 
     @ti.func
     def limit_energy(self, x: ti.template(), v: ti.template(), dt, conserve):
@@ -268,6 +281,11 @@ class Safeguards:
         part of the scheme and is not counted."""
         self.rigid_motion(x, v)
         trimmed, falls = 0, 0
+        if ti.static(self.effects.has_contact):                # one island: body 0's entries hold the sums
+            ti.loop_config(serialize=True)
+            for b in range(1, self.model.body_count[None]):
+                self.body_deformation[0] += self.body_deformation[b]
+                self.body_moving[0] += self.body_moving[b]
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             energy, allowance = self.body_total[AFTER, b], self.allowance(b, self.body_total_size[AFTER, b])
@@ -285,7 +303,7 @@ class Safeguards:
             elif energy > self.body_lowest[b] + allowance:     # a rise within round-off is no rise
                 excess = energy - self.body_lowest[b] - 0.5 * allowance
             K, G = self.body_deformation[b], ti.cast(0.0, ti.f64)
-            if ti.static(self.has_gravity):      # a shift along g that could reach the ground is none
+            if ti.static(self.has_gravity and not self.effects.has_contact):   # a shift that could reach the ground is none
                 if self.body_pinned[b] == 0 and self.body_touching[b] == 0 \
                         and excess < self.body_mass[b] * self.effects.gravity_vector().norm() * self.body_clearance[b]:
                     G = dt * dt * self.body_mass[b] * ti.cast(self.effects.gravity_vector(), ti.f64).norm_sqr()
@@ -310,12 +328,12 @@ class Safeguards:
             self.body_shift[b] = lam * dt * dt * (G > 0.0)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            b = self.model.vertex_body[i]
-            if self.body_deformation[b] != 1.0 or (self.body_spin_new[b] != self.body_spin[b]).any():
+            b, f = self.model.vertex_body[i], self.island(self.model.vertex_body[i])    # f: whose factors
+            if self.body_deformation[f] != 1.0 or (self.body_spin_new[b] != self.body_spin[b]).any():
                 c = self.centre_velocity(b)
                 r = ti.cast(x[i], ti.f64) - self.body_centre[b]
                 w = ti.cast(v[i], ti.f64) - c - self.body_spin[b].cross(r)
-                u = c + self.body_spin_new[b].cross(r) + self.body_deformation[b] * w
+                u = c + self.body_spin_new[b].cross(r) + self.body_deformation[f] * w
                 v[i] = ti.cast(u * self.model.free[i], float)
                 if ti.static(self.has_gravity):
                     x[i] += ti.cast(self.body_shift[b] * self.model.free[i], float) * self.effects.gravity_vector()
@@ -329,7 +347,7 @@ class Safeguards:
         """For `fall_back` on the ground: the factor s on body b's velocities at the step's end
         that brings its energy there (`energy`) down to its energy BEFORE, or -s where even its
         positions hold more than that: then s brings its kinetic energy to the start's."""
-        kinetic = self.body_kinetic[b] + 0.5 * self.centre_velocity(b).norm_sqr() * self.body_mass[b]
+        kinetic = self.body_moving[b]
         budget = self.body_total[BEFORE, b] - (energy - kinetic)          # what its speed may hold
         s = ti.cast(0.0, ti.f64)
         if budget >= 0.0 and kinetic > 0.0:
@@ -378,9 +396,9 @@ class Safeguards:
                     self.body_touching[b] = 1
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            b = self.model.vertex_body[i]
-            if self.body_fallback[b] and self.model.free[i] > 0 and self.body_touching[b]:
-                s = self.body_speed[b]
+            b, f = self.model.vertex_body[i], self.island(self.model.vertex_body[i])    # f: whose trim
+            if self.body_fallback[f] and self.model.free[i] > 0 and (self.body_touching[f] or ti.static(self.effects.has_contact)):
+                s = self.body_speed[f]
                 v[i] *= ti.cast(ti.abs(s), float)
                 if s < 0.0:
                     x[i] = x_n[i]
@@ -426,6 +444,15 @@ class Safeguards:
         """Where `fall_back`'s rigid step takes vertex i of body b."""
         r = self.body_inertia[b] @ (ti.cast(x_n[i], ti.f64) - self.body_centre[b])
         return ti.cast(self.body_centre[b] + self.body_shift_vector[b] + r, float)
+
+    @ti.func
+    def island(self, b):
+        """The body whose entries hold body b's energy and limit: b itself, or body 0 where contact
+        lets bodies trade energy (they are then one island, limited together)."""
+        out = b
+        if ti.static(self.effects.has_contact):
+            out = 0
+        return out
 
     @ti.func
     def rigid_motion(self, x: ti.template(), v: ti.template()):
@@ -475,6 +502,9 @@ class Safeguards:
             r = ti.cast(x[i], ti.f64) - self.body_centre[b]
             w = ti.cast(v[i], ti.f64) - self.centre_velocity(b) - self.body_spin[b].cross(r)
             self.body_deformation[b] += 0.5 * m * w.norm_sqr()
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_moving[b] = self.body_kinetic[b] + 0.5 * self.centre_velocity(b).norm_sqr() * self.body_mass[b]
 
     @ti.func
     def centre_velocity(self, b):

@@ -14,9 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from fem.implicit.contact import Contact
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
 from fem.implicit.integrators import DAMPED_RHO, TRAPEZOIDAL, History, chosen
+from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
 from fem.implicit.potential import ROUNDOFF, IncrementalPotential
@@ -68,11 +70,12 @@ class Switches:
     pins: bool
     serial_tets: bool
     serial_vertices: bool
+    contact: bool = False             # between bodies and within one (fem/implicit/contact.py)
 
     @classmethod
     def of(cls, effects, n_vertices, n_tets, has_pins):
         return cls(effects.gravity is not None, effects.ground is not None, effects.beta > 0, has_pins,
-                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"))
+                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"), effects.contact is not None)
 
 
 @ti.data_oriented
@@ -87,12 +90,16 @@ class ImplicitSolver:
         self.rotations = Rotations(model, self.sleep, switches)
         self.elasticity = Elasticity(model, self.rotations, self.sleep, switches)
         self.effects = Effects(model, self.elasticity, self.sleep, switches)
+        if switches.contact:                                  # between bodies, part of the effects
+            self.effects.contact = Contact(model, self.effects, switches)
         self.potential = IncrementalPotential(model, self.elasticity, self.rotations, self.effects, self.sleep,
                                               switches)
         self.preconditioning = Preconditioner(model, self.rotations, self.effects, self.sleep, switches)
         self.linear = LinearSolver(model, self.potential, self.elasticity, self.preconditioning, self.effects,
                                    self.sleep, switches)
         self.newton = Newton(model, self.potential, self.linear, self.rotations, self.effects, self.sleep, switches)
+        if switches.contact:                                  # bodies that contact couples search together
+            self.newton.islands = Islands(model, self.newton, self.effects.contact)
         self.safeguards = Safeguards(model, self.elasticity, self.effects, self.sleep, switches)
         self.history = History(model, self.sleep, switches)
         self.x_end = ti.Vector.field(3, float, model.capacity.vertices)   # m: where the last step ended
@@ -114,10 +121,10 @@ class ImplicitSolver:
         """
         start = time.perf_counter()
         settings, model, p = self.settings, self.model, self.potential
-        corotational, ground = model.any_corotational, self.switches.ground
+        corotational, ground, contact = model.any_corotational, self.switches.ground, self.switches.contact
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
-        integrator = chosen(settings.integrator, self.switches.ground)    # "auto": by the scene
+        integrator = chosen(settings.integrator, ground or contact)     # "auto": by the scene
         rho = settings.rho_infinity
         if rho is None:                                                 # by the scene: rest where damped
             rho = DAMPED_RHO if self.effects.damped else 1.0
@@ -130,6 +137,8 @@ class ImplicitSolver:
 
         # where the step starts, its energy, the guess, the integrator's inertia target, the first iterate
         moved = p.begin(state_in.x, state_in.v, self.x_end)
+        if contact:
+            self.effects.contact.find(state_in.x)                      # the pairs touching at x_n
         # a Newton step that starts where the last one ended has R(x_n) and the elastic energies
         # there already: its last trial's (the rotations extracted at the last step's end)
         ended_here = newton and moved == 0 and self.end_known == model.version
@@ -146,12 +155,16 @@ class ImplicitSolver:
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
+        if contact:                                                     # contact: the first iterate is x_n
+            self.effects.contact.hold_start(p.x0, p.x, p.v, state_in.x, h)
         if target.from_history:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
         if ground:
             self.effects.start_contacts(state_in.x, p.x, h, dt)         # friction's normal forces at x_n
+        if contact:
+            self.effects.contact.start(p.x, p.v, h, p.body_E)           # lagged friction, the first Hessian
         # the blocks follow H: every step where the rotations or the contacts change it
-        exact = (newton and corotational) or settings.method != "pcg" or ground
+        exact = (newton and corotational) or settings.method != "pcg" or ground or contact
         self.preconditioning.update(p.x, cM, cK, turned, corotational, exact=exact, reuse=not exact,
                                     two_level=self.preconditioner == "two-level")
 
@@ -159,7 +172,7 @@ class ImplicitSolver:
         # Newton with the rotations of the first iterate, to find the contacts)
         if newton:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
-        elif ground and not model.any_naive:
+        elif (ground or contact) and not model.any_naive:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner, frozen=True)
         else:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
@@ -168,11 +181,11 @@ class ImplicitSolver:
         # (the trapezoidal rule, undamped, off the ground) is projected onto the energy it began with
         trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
         accel = self.history.acceleration() if target.one_step else p.v0
-        conserve = int(target == TRAPEZOIDAL and not ground and not self.effects.damped)
-        bad, trimmed, rigid = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, True,
+        conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
+        bad, trimmed, rigid = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not contact,
                                                          newton, accel, target.one_step, conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
-        if finite and rigid > 0:      # a rigid step moves every vertex: in f32, rounding strains a stiff body
+        if finite and rigid > 0 and not contact:     # a rigid step's rounding strains a stiff body in f32
             rotation_ms += self.update_rotations(p.x, corotational)[0]
             self.safeguards.settle(state_in.x, p.x, p.v)
         trimmed = int(trimmed) if finite else 0

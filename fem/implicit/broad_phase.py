@@ -1,0 +1,176 @@
+"""The broad phase of contact: which surface vertices and triangles may be close (fem/implicit/contact.py).
+
+A uniform grid hashed into `table_size` buckets (Teschner et al. 2003), rebuilt at every
+search in three parallel passes and one prefix sum. A cell is at least as wide as every
+triangle's box grown by the search radius, so each triangle lies in at most 8 cells and a
+vertex only looks in its own: O(n) work for n surface vertices and triangles.
+
+Fields (t triangles of the capacity):
+    cell ()                 the cells' width, m
+    cell_count (table,)     triangles per bucket, then a cursor while filling
+    cell_start (table + 1,) where each bucket's triangles start in cell_triangles
+    cell_triangles (8 t,)   the triangles of every bucket, bucket by bucket
+    island (bodies,)        the lowest body id joined to a body by candidate pairs
+"""
+
+import taichi as ti
+
+
+def next_power_of_two(n):
+    return 1 << max(10, (n - 1).bit_length())
+
+
+@ti.func
+def closest_weights(p, a, b, c):
+    """Barycentric weights (w0, w1, w2) of the point of triangle (a, b, c) closest to p
+    (Ericson, Real-Time Collision Detection, 5.1.5)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = ab.dot(ap), ac.dot(ap)
+    bp, cp = p - b, p - c
+    d3, d4 = ab.dot(bp), ac.dot(bp)
+    d5, d6 = ab.dot(cp), ac.dot(cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    w = ti.Vector([0.0, 0.0, 0.0])
+    if d1 <= 0 and d2 <= 0:                                   # vertex region a
+        w = ti.Vector([1.0, 0.0, 0.0])
+    elif d3 >= 0 and d4 <= d3:                                # vertex region b
+        w = ti.Vector([0.0, 1.0, 0.0])
+    elif d6 >= 0 and d5 <= d6:                                # vertex region c
+        w = ti.Vector([0.0, 0.0, 1.0])
+    elif vc <= 0 and d1 >= 0 and d3 <= 0:                     # edge ab
+        s = d1 / (d1 - d3)
+        w = ti.Vector([1.0 - s, s, 0.0])
+    elif vb <= 0 and d2 >= 0 and d6 <= 0:                     # edge ac
+        s = d2 / (d2 - d6)
+        w = ti.Vector([1.0 - s, 0.0, s])
+    elif va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:           # edge bc
+        s = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        w = ti.Vector([0.0, 1.0 - s, s])
+    else:                                                     # the face
+        total = va + vb + vc
+        w = ti.Vector([va / total, vb / total, vc / total])
+    return w
+
+
+@ti.data_oriented
+class BroadPhase:
+    """The candidate pairs of `contact` (its triangles, surface and pair fields), and islands."""
+
+    def __init__(self, model, contact, switches):
+        t = 4 * model.capacity.tets
+        self.model, self.contact = model, contact
+        self.serial_vertices = switches.serial_vertices
+        self.table_size = next_power_of_two(2 * t)
+        self.cell = ti.field(float, ())
+        self.cell_count = ti.field(ti.i32, self.table_size)
+        self.cell_start = ti.field(ti.i32, self.table_size + 1)
+        self.cell_triangles = ti.field(ti.i32, 8 * t)
+        self.island = ti.field(ti.i32, model.capacity.bodies)
+
+    @ti.func
+    def cell_of(self, p):
+        return ti.floor(p / self.cell[None]).cast(ti.i32)
+
+    @ti.func
+    def bucket(self, c):
+        """The table entry of grid cell c (a spatial hash, Teschner et al. 2003)."""
+        h = (c[0] * 73856093) ^ (c[1] * 19349663) ^ (c[2] * 83492791)
+        return h & ti.static(self.table_size - 1)
+
+    @ti.func
+    def triangle_cells(self, x: ti.template(), k, radius):
+        """The lowest and highest grid cells of triangle k's box grown by radius."""
+        t = self.contact.triangles[k]
+        lo = ti.min(x[t[0]], x[t[1]], x[t[2]]) - radius
+        hi = ti.max(x[t[0]], x[t[1]], x[t[2]]) + radius
+        return self.cell_of(lo), self.cell_of(hi)
+
+    @ti.func
+    def first_time(self, lo, hi, c):
+        """1 where no cell of the triangle's box [lo, hi] before c (in loop order) has c's
+        bucket: each triangle goes into a bucket once."""
+        b, first = self.bucket(c), 1
+        for i, j, k in ti.ndrange(2, 2, 2):
+            e = lo + ti.Vector([i, j, k])
+            before = (e[0] < c[0]) or (e[0] == c[0] and (e[1] < c[1] or (e[1] == c[1] and e[2] < c[2])))
+            if (e <= hi).all() and before and self.bucket(e) == b:
+                first = 0
+        return first
+
+    @ti.func
+    def find_pairs(self, x: ti.template(), radius):
+        """pairs <- every (surface vertex, triangle not containing it) closer than radius at x."""
+        nt = self.contact.triangle_count[None]
+        self.cell[None] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for k in range(nt):
+            t = self.contact.triangles[k]
+            size = ti.max(x[t[0]], x[t[1]], x[t[2]]) - ti.min(x[t[0]], x[t[1]], x[t[2]])
+            ti.atomic_max(self.cell[None], size.max() + 2.0 * radius)
+        ti.loop_config(serialize=self.serial_vertices)
+        for b in range(self.table_size):
+            self.cell_count[b] = 0
+        ti.loop_config(serialize=self.serial_vertices)
+        for k in range(nt):
+            lo, hi = self.triangle_cells(x, k, radius)
+            for i, j, l in ti.ndrange(2, 2, 2):
+                c = lo + ti.Vector([i, j, l])
+                if (c <= hi).all() and self.first_time(lo, hi, c):
+                    ti.atomic_add(self.cell_count[self.bucket(c)], 1)
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            total = 0
+            for b in range(self.table_size):
+                self.cell_start[b] = total
+                total += self.cell_count[b]
+            self.cell_start[self.table_size] = total
+        ti.loop_config(serialize=self.serial_vertices)
+        for b in range(self.table_size):
+            self.cell_count[b] = 0
+        ti.loop_config(serialize=self.serial_vertices)
+        for k in range(nt):
+            lo, hi = self.triangle_cells(x, k, radius)
+            for i, j, l in ti.ndrange(2, 2, 2):
+                c = lo + ti.Vector([i, j, l])
+                if (c <= hi).all() and self.first_time(lo, hi, c):
+                    b = self.bucket(c)
+                    self.cell_triangles[self.cell_start[b] + ti.atomic_add(self.cell_count[b], 1)] = k
+        self.contact.pair_count[None], self.contact.overflow[None] = 0, 0
+        ti.loop_config(serialize=self.serial_vertices)
+        for s in range(self.contact.surface_count[None]):
+            i = self.contact.surface[s]
+            c = self.cell_of(x[i])
+            b = self.bucket(c)
+            for slot in range(self.cell_start[b], self.cell_start[b + 1]):
+                k = self.cell_triangles[slot]
+                t = self.contact.triangles[k]
+                lo, hi = self.triangle_cells(x, k, radius)
+                if (t != i).all() and (c >= lo).all() and (c <= hi).all():
+                    w = closest_weights(x[i], x[t[0]], x[t[1]], x[t[2]])
+                    if (x[i] - (w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]])).norm() < radius:
+                        slot_out = ti.atomic_add(self.contact.pair_count[None], 1)
+                        if slot_out < ti.static(self.contact.pair_capacity):
+                            self.contact.pairs[slot_out] = ti.Vector([i, k])
+                        else:
+                            self.contact.overflow[None] = 1
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            self.contact.pair_count[None] = ti.min(self.contact.pair_count[None], ti.static(self.contact.pair_capacity))
+
+    @ti.func
+    def find_islands(self):
+        """island[b] <- the lowest body id that body b is joined to through candidate pairs: bodies
+        in different islands cannot meet in this line search, so each island searches alone."""
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            for b in range(self.model.body_count[None]):
+                self.island[b] = b
+            changed = 1
+            while changed:
+                changed = 0
+                for q in range(self.contact.pair_count[None]):
+                    ids = self.contact.vertices(q)
+                    a, c = self.model.vertex_body[ids[0]], self.model.vertex_body[ids[1]]
+                    low = ti.min(self.island[a], self.island[c])
+                    if self.island[a] != low or self.island[c] != low:
+                        self.island[a], self.island[c], changed = low, low, 1

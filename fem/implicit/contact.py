@@ -1,0 +1,345 @@
+"""Contact between bodies, and of a body with itself: an energy inside E(v) (method.md, section 6).
+
+Each surface vertex p and each surface triangle t = (t0, t1, t2) that does not contain it, of
+another body or of the same one, are a pair. With d = |p - c| the distance from p to the
+closest point c = sum_j w_j t_j of the triangle (w_j its barycentric weights), the pair stores
+
+    C(x) = k m_p / 2 max(0, d_hat - d)^2,   k = CONTACT_STIFFNESS / dt^2   (J)
+
+a penalty like the ground's (fem/implicit/effects.py) across a contact thickness d_hat (the
+scene's `distance`). Its gradient is exact: grad_p d = n = (p - c) / d, grad_tj d = -w_j n (c
+is the closest point, so moving it along the triangle changes d to first order by nothing).
+Its Hessian is Gauss-Newton's, k m_p n n^T on the pair's 12 dofs weighted by (1, -w0, -w1,
+-w2): positive semi-definite, so H stays SPD for PCG. C only depends on the positions, not on
+which pairs were found, as long as the broad phase finds every pair closer than d_hat.
+
+Friction is lagged as the ground's: the pairs touching at the step's start keep their weights
+w, normal n and normal force lambda = k m_p (d_hat - d) for the whole step, and add
+h mu lambda f0(|u_T|), u_T the pair's relative tangential velocity.
+
+No vertex passes through a triangle: each line search starts with a step bound (`prepare_search`,
+a conservative additive CCD, Li et al. 2021): a pair at distance d0 whose points move at most
+D along the step closes at most D a, so a <= SAFETY d0 / D keeps it apart. The same pass finds
+the pairs for the line search: every pair within d_hat + 2 max_i |h d_i| of the accepted
+iterate, the only ones that can come closer than d_hat along the step.
+
+The candidates come from a broad phase (fem/implicit/broad_phase.py, a spatial hash: O(n)),
+which also groups the bodies joined by pairs into islands, each with its own line search.
+
+Fields (n vertices, t triangles of the capacity, P pairs):
+    triangles (t, 3)       the surface triangles' global vertex ids, outward (counter-clockwise)
+    surface (n,)           the surface vertices' ids, surface_count of them
+    distance ()            d_hat, m
+    friction ()            mu, Coulomb's coefficient between bodies
+    reach ()               m: the most a line search moves a vertex before its step is cut
+    island (bodies,)       the lowest body id joined to a body by candidate pairs (the broad phase's)
+    pairs (P, 2)           candidate (vertex, triangle) pairs of the current search
+    pair_weights (P, 4)    (1, -w0, -w1, -w2) at the last evaluation
+    pair_matrix (P, 3x3)   h^2 k m_p n n^T while touching, else 0 (kg/s)
+    sticks (P, 2)          the step's friction pairs, lagged: (vertex, triangle)
+    stick_weights, stick_normal, stick_force (lambda, N), stick_matrix (friction's Hessian, kg/s)
+    force (n, 3)           -grad of the contact and friction terms at the last evaluation, N s
+    product (n, 3)         (their Hessian) u of the last product pass, N s
+    block (n, 3x3)         their Hessian's diagonal blocks, for the preconditioner (kg/s)
+    energy (n,)            each vertex's share of the contact energy (half of each pair to its
+                           vertex, half to its triangle's), J, float64: the safeguards' per-body sums
+"""
+
+import numpy as np
+import taichi as ti
+
+from fem.implicit.broad_phase import BroadPhase, closest_weights
+from fem.implicit.effects import FRICTION_SPEED
+
+SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
+PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
+TOUCHING = 1e-9              # m: pairs closer than this cannot be kept apart by a step bound
+
+
+@ti.data_oriented
+class Contact:
+    """The contact pairs of one model: broad phase, energy, gradient, Hessian products."""
+
+    def __init__(self, model, effects, switches):
+        n, t = model.capacity.vertices, 4 * model.capacity.tets
+        self.model, self.effects = model, effects
+        self.serial_vertices = switches.serial_vertices
+        self.pair_capacity = PAIRS_PER_VERTEX * n
+        self.triangles = ti.Vector.field(3, ti.i32, t)
+        self.triangle_count = ti.field(ti.i32, ())
+        self.surface = ti.field(ti.i32, n)
+        self.surface_count = ti.field(ti.i32, ())
+        self.distance = ti.field(float, ())
+        self.friction = ti.field(float, ())
+        self.reach = ti.field(float, ())
+        self.pairs = ti.Vector.field(2, ti.i32, self.pair_capacity)
+        self.pair_count = ti.field(ti.i32, ())
+        self.overflow = ti.field(ti.i32, ())
+        self.broad = BroadPhase(model, self, switches)
+        self.island = self.broad.island
+        self.pair_weights = ti.Vector.field(4, float, self.pair_capacity)
+        self.pair_matrix = ti.Matrix.field(3, 3, float, self.pair_capacity)
+        self.sticks = ti.Vector.field(2, ti.i32, self.pair_capacity)
+        self.stick_count = ti.field(ti.i32, ())
+        self.stick_weights = ti.Vector.field(4, float, self.pair_capacity)
+        self.stick_normal = ti.Vector.field(3, float, self.pair_capacity)
+        self.stick_force = ti.field(float, self.pair_capacity)
+        self.stick_matrix = ti.Matrix.field(3, 3, float, self.pair_capacity)
+        self.force = ti.Vector.field(3, float, n)
+        self.product = ti.Vector.field(3, float, n)
+        self.block = ti.Matrix.field(3, 3, float, n)
+        self.energy = ti.field(ti.f64, n)
+        self.step_limit = ti.field(float, ())
+        self.largest_move = ti.field(float, ())
+        self.smallest = ti.field(float, ())
+        self.touching = ti.field(ti.i32, ())
+        self.crossing = ti.field(ti.i32, ())
+
+    def load(self, contact):
+        """The model's surface and a scene's contact settings (fem.scene.ContactEffect)."""
+        triangles = self.model.surface.astype(np.int32)
+        surface = np.unique(triangles).astype(np.int32)
+        self.model.write(self.triangles, triangles)
+        self.model.write(self.surface, surface)
+        self.triangle_count[None], self.surface_count[None] = len(triangles), len(surface)
+        rest = self.model.rest_positions_np
+        edges = np.linalg.norm(rest[triangles] - rest[np.roll(triangles, 1, axis=1)], axis=2)
+        self.reach[None] = max(float(edges.mean()), 4.0 * contact.distance)
+        self.distance[None], self.friction[None] = contact.distance, contact.friction
+        self.stick_count[None] = 0
+
+    # ------------------------------------------------------------ one pair
+
+    @ti.func
+    def vertices(self, q):
+        """The pair's four vertices: (p, t0, t1, t2)."""
+        t = self.triangles[self.pairs[q][1]]
+        return ti.Vector([self.pairs[q][0], t[0], t[1], t[2]])
+
+    @ti.func
+    def gap(self, x: ti.template(), ids):
+        """(d, n, weights (1, -w0, -w1, -w2)) of the pair with vertices ids at x."""
+        p, a, b, c = x[ids[0]], x[ids[1]], x[ids[2]], x[ids[3]]
+        w = closest_weights(p, a, b, c)
+        r = p - (w[0] * a + w[1] * b + w[2] * c)
+        d = r.norm()
+        n = (b - a).cross(c - a).normalized()                 # touching: the triangle's normal
+        if d > TOUCHING:
+            n = r / d
+        return d, n, ti.Vector([1.0, -w[0], -w[1], -w[2]])
+
+    @ti.func
+    def scatter(self, out: ti.template(), ids, weights, f):
+        for a in ti.static(range(4)):
+            ti.atomic_add(out[ids[a]], weights[a] * f)
+
+    # ------------------------------------------------------------ E, grad E, H u
+
+    @ti.func
+    def evaluate(self, x: ti.template(), v: ti.template(), h, body_E: ti.template()):
+        """body_E += the contact and friction energies (J, float64); force <- their -grad E
+        (N s); pair_matrix, stick_matrix and block <- their Hessian (kg/s), at (x, v)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.force[i] = ti.Vector.zero(float, 3)
+            self.block[i] = ti.Matrix.zero(float, 3, 3)
+        d_hat = self.distance[None]
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.pair_count[None]):
+            ids = self.vertices(q)
+            d, n, c = self.gap(x, ids)
+            km = self.effects.contact_stiffness[None] * self.model.mass[ids[0]]
+            A = ti.Matrix.zero(float, 3, 3)
+            if d < d_hat:
+                depth = d_hat - d
+                body_E[self.model.vertex_body[ids[0]]] += 0.5 * ti.cast(km, ti.f64) * ti.cast(depth, ti.f64) ** 2
+                self.scatter(self.force, ids, c, h * km * depth * n)
+                A = h * h * km * n.outer_product(n)
+                for a in ti.static(range(4)):
+                    self.block[ids[a]] += c[a] * c[a] * A
+            self.pair_weights[q], self.pair_matrix[q] = c, A
+        mu = self.friction[None]
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.stick_count[None] * (mu > 0)):
+            ids = self.stick_vertices(q)
+            c, n = self.stick_weights[q], self.stick_normal[q]
+            u = c[0] * v[ids[0]] + c[1] * v[ids[1]] + c[2] * v[ids[2]] + c[3] * v[ids[3]]
+            u -= u.dot(n) * n                                  # tangential relative velocity
+            s = u.norm()
+            eps = ti.static(FRICTION_SPEED)
+            f0 = s - 0.5 * eps
+            if s < eps:
+                f0 = 0.5 * s * s / eps
+            lam = h * mu * self.stick_force[q]
+            body_E[self.model.vertex_body[ids[0]]] += ti.cast(lam, ti.f64) * ti.cast(f0, ti.f64)
+            g = lam / ti.max(s, eps)
+            tangent = ti.Matrix.identity(float, 3) - n.outer_product(n)
+            A = g * tangent
+            if s >= eps:
+                t = u / s
+                A = g * (tangent - t.outer_product(t))
+            self.scatter(self.force, ids, c, -g * u)
+            for a in ti.static(range(4)):
+                self.block[ids[a]] += c[a] * c[a] * A
+            self.stick_matrix[q] = A
+
+    @ti.func
+    def stick_vertices(self, q):
+        t = self.triangles[self.sticks[q][1]]
+        return ti.Vector([self.sticks[q][0], t[0], t[1], t[2]])
+
+    @ti.func
+    def product_pass(self, z: ti.template(), p: ti.template(), beta, on):
+        """product <- (the contact's Hessian) u, u = z + beta p (CG's next direction, as
+        Elasticity.tet_stiffness takes it; beta = 0: u = z). on = 0: loops over nothing."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None] * on):
+            self.product[i] = ti.Vector.zero(float, 3)
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.pair_count[None] * on):
+            ids, c = self.vertices(q), self.pair_weights[q]
+            s = ti.Vector.zero(float, 3)
+            for a in ti.static(range(4)):
+                s += c[a] * (z[ids[a]] + beta * p[ids[a]])
+            self.scatter(self.product, ids, c, self.pair_matrix[q] @ s)
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.stick_count[None] * on * (self.friction[None] > 0)):
+            ids, c = self.stick_vertices(q), self.stick_weights[q]
+            s = ti.Vector.zero(float, 3)
+            for a in ti.static(range(4)):
+                s += c[a] * (z[ids[a]] + beta * p[ids[a]])
+            self.scatter(self.product, ids, c, self.stick_matrix[q] @ s)
+
+    # ------------------------------------------------------------ the step's passes
+
+    @ti.kernel
+    def find(self, x: ti.template()):
+        """The pairs closer than d_hat at x (the step's start: its energy BEFORE)."""
+        self.broad.find_pairs(x, self.distance[None])
+
+    @ti.kernel
+    def start(self, x: ti.template(), v: ti.template(), h: float, body_E: ti.template()):
+        """At the step's first iterate x (= x_n): the lagged friction pairs (the touching ones,
+        with their normal force), then E's terms and Hessian there (for the preconditioner)."""
+        d_hat = self.distance[None]
+        self.stick_count[None] = 0
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.pair_count[None]):
+            ids = self.vertices(q)
+            d, n, c = self.gap(x, ids)
+            if d < d_hat:
+                k = ti.atomic_add(self.stick_count[None], 1)
+                self.sticks[k] = self.pairs[q]
+                self.stick_weights[k], self.stick_normal[k] = c, n
+                self.stick_force[k] = self.effects.contact_stiffness[None] * self.model.mass[ids[0]] * (d_hat - d)
+        self.evaluate(x, v, h, body_E)            # (body_E is the energy pass's to fill: it starts it anew)
+
+    @ti.kernel
+    def hold_start(self, x0: ti.template(), x: ti.template(), v: ti.template(), x_n: ti.template(), h: float):
+        """Where the jump from x_n to the first iterate x (the integrator's guess) could bring a
+        pair closer than (1 - SAFETY) of its gap, the first iterate is x_n itself (v = (x_n - x^) / h):
+        every later iterate is reached by line searches that keep the pairs apart, so no step
+        starts through a triangle. Leaves the pairs around x_n that the first iterate can meet."""
+        self.largest_move[None] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for s in range(self.surface_count[None]):
+            i = self.surface[s]
+            ti.atomic_max(self.largest_move[None], (x[i] - x_n[i]).norm())
+        D = ti.min(self.largest_move[None], self.reach[None])
+        self.broad.find_pairs(x_n, self.distance[None] + 2.0 * D)
+        self.step_limit[None] = float(self.largest_move[None] <= self.reach[None])
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.pair_count[None]):
+            ids = self.vertices(q)
+            move = (x[ids[0]] - x_n[ids[0]]).norm() + ti.max((x[ids[1]] - x_n[ids[1]]).norm(),
+                                                             (x[ids[2]] - x_n[ids[2]]).norm(),
+                                                             (x[ids[3]] - x_n[ids[3]]).norm())
+            if move > SAFETY * self.gap(x_n, ids)[0]:
+                self.step_limit[None] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None] * (self.step_limit[None] < 1.0)):
+            u = self.effects.filtered(i, (x_n[i] - x0[i]) / h)
+            v[i] = u
+            x[i] = x0[i] + h * u
+
+    @ti.kernel
+    def prepare_search(self, x: ti.template(), d: ti.template(), h: float) -> float:
+        """Before a line search from the accepted iterate x along d: the pairs it can meet (within
+        d_hat + 2 D, D = h max_i |d_i|, capped at `reach`) and the largest step a <= 1 that keeps
+        every pair at least (1 - SAFETY) of its gap apart; returns that step."""
+        self.largest_move[None] = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for s in range(self.surface_count[None]):
+            ti.atomic_max(self.largest_move[None], h * d[self.surface[s]].norm())
+        D, limit = self.largest_move[None], 1.0
+        if D > self.reach[None]:
+            limit = self.reach[None] / D
+        self.broad.find_pairs(x, self.distance[None] + 2.0 * limit * D)
+        self.broad.find_islands()
+        self.step_limit[None] = limit
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.pair_count[None]):
+            ids = self.vertices(q)
+            gap = self.gap(x, ids)[0]
+            move = h * (d[ids[0]].norm() + ti.max(d[ids[1]].norm(), d[ids[2]].norm(), d[ids[3]].norm()))
+            if gap > TOUCHING and move * self.step_limit[None] > SAFETY * gap:
+                ti.atomic_min(self.step_limit[None], SAFETY * gap / move)
+        return self.step_limit[None]
+
+    # ------------------------------------------------------------ for checks and tests
+
+    @ti.kernel
+    def terms(self, x: ti.template(), v: ti.template(), h: float, sums: ti.template()):
+        """`evaluate` at (x, v) with the current pairs, each body's energies into sums (J)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for b in range(self.model.body_count[None]):
+            sums[b] = 0.0
+        self.evaluate(x, v, h, sums)
+
+    @ti.kernel
+    def apply(self, u: ti.template()):
+        """product <- the Hessian of the last `evaluate` times u."""
+        self.product_pass(u, u, 0.0, 1)
+
+    @ti.kernel
+    def find_within(self, x: ti.template(), radius: float):
+        """pairs <- every pair closer than radius at x."""
+        self.broad.find_pairs(x, radius)
+
+    @ti.func
+    def share_energy(self, x: ti.template()):
+        """energy <- each vertex's share of the contact energy at x (J, float64): half of a pair's
+        to its vertex, half to its triangle's, by their weights."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.energy[i] = 0.0
+        d_hat = self.distance[None]
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.pair_count[None]):
+            ids = self.vertices(q)
+            d, n, c = self.gap(x, ids)
+            if d < d_hat:
+                km = ti.cast(self.effects.contact_stiffness[None] * self.model.mass[ids[0]], ti.f64)
+                e = 0.25 * km * ti.cast(d_hat - d, ti.f64) ** 2
+                self.energy[ids[0]] += e
+                for a in ti.static(range(1, 4)):
+                    self.energy[ids[a]] -= ti.cast(c[a], ti.f64) * e
+
+    @ti.kernel
+    def measure(self, x: ti.template()):
+        """smallest <- the smallest pair distance at x (m; d_hat + 1 without pairs); touching <-
+        the pairs closer than d_hat; crossing <- those whose vertex is behind its triangle (inside
+        the other side's surface), interpenetrating."""
+        d_hat = self.distance[None]
+        self.smallest[None], self.touching[None], self.crossing[None] = d_hat + 1.0, 0, 0
+        ti.loop_config(serialize=self.serial_vertices)
+        for q in range(self.pair_count[None]):
+            ids = self.vertices(q)
+            d, n, c = self.gap(x, ids)
+            ti.atomic_min(self.smallest[None], d)
+            if d < d_hat:
+                self.touching[None] += 1
+                a, b, e = x[ids[1]], x[ids[2]], x[ids[3]]
+                inside_face = c[1] < 0 and c[2] < 0 and c[3] < 0      # closest to the face, not an edge
+                if inside_face and (x[ids[0]] - a).dot((b - a).cross(e - a)) < 0:
+                    self.crossing[None] += 1
