@@ -23,10 +23,10 @@ generalises it with numerical dissipation (SolverSettings.rho_infinity).
 The trapezoidal rule is a one-step scheme: after anything that breaks the history (the first
 step, an impulse, a new state, a live edit, a change of dt or of integrator, a rejected step)
 its a_n is the acceleration the forces give at the step's start (`History.fresh`; the solver
-computes it). BDF2 needs the previous step: its first step after a break is a trapezoidal
-step, so that a second-order run never takes a first-order step (a backward Euler start cost
-a falling body 0.5 g dt^2 and a spinning one 2 % of its energy). Sleeping bodies keep their
-place exactly.
+computes it). BDF2 needs the previous step: after a break its x_(n-1), v_(n-1) are read off
+x_n, v_n and that same a_n (`History.extrapolate`), so that a second-order run never takes a
+first-order step (a backward Euler start cost a falling body 0.5 g dt^2 and a spinning one 2 %
+of its energy). Sleeping bodies keep their place exactly.
 
 "auto", the default, is the trapezoidal rule, but BDF2 in a scene with a ground (`chosen`): the
 ground's penalty is far stiffer than any body (fem/implicit/effects.py), and the trapezoidal
