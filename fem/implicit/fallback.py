@@ -44,9 +44,10 @@ class Fallback:
         translates. A body the ground touches (at the step's start or its failed end) could be
         carried into it by such a step (or is, where the step would press it in). It keeps the
         step's end instead, its velocities slowed by the one factor that brings its energy to
-        the start's (`slowed`); where the end's positions alone hold more energy than that, it
-        stays at x_n with the step's velocities, slowed to the start's kinetic energy. Either
-        way its energy is at most the one it began with, and its motion is the step's."""
+        the start's (`slowed`); where the end's positions alone hold more energy than that, no
+        motion the step found lowers its energy (a stiff linear body turning on the ground: a
+        turn strains it), and it stays at x_n, at rest. Either way its energy is at most the
+        one it began with."""
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_spin_new[b] = self.centre_velocity(b)       # v_c,n+1, before rigid_motion(x_n) overwrites it
@@ -72,8 +73,8 @@ class Fallback:
             b, f = self.model.vertex_body[i], self.island(self.model.vertex_body[i])    # f: whose trim
             if self.body_fallback[f] and self.model.free[i] > 0 and (self.body_touching[f] or ti.static(self.effects.has_contact)):
                 s = self.body_speed[f]
-                v[i] *= ti.cast(ti.abs(s), float)
-                if s < 0.0:
+                v[i] *= ti.cast(ti.max(s, 0.0), float)
+                if s < 0.0:          # no motion from here lowers its energy (a turned linear body)
                     x[i] = x_n[i]
             elif self.body_fallback[b] and self.model.free[i] > 0:
                 r = self.body_inertia[b] @ (ti.cast(x_n[i], ti.f64) - self.body_centre[b])

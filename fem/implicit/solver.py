@@ -126,8 +126,8 @@ class ImplicitSolver:
         newton = settings.step == "newton" and not model.any_naive
         integrator = chosen(settings.integrator, ground or contact)     # "auto": by the scene
         rho = settings.rho_infinity
-        if rho is None:                                                 # by the scene: rest where damped
-            rho = DAMPED_RHO if self.effects.damped else 1.0
+        if rho is None:          # by the scene: rest where damped, no ringing on a ground's or contact's penalty
+            rho = DAMPED_RHO if self.effects.damped or ground or contact else 1.0
         target = self.history.target(integrator, dt, model.version, rho)
         h = target.h_per_dt * dt                                        # the integrator's effective step
         cM, cK = p.coefficients(h)
