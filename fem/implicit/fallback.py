@@ -9,6 +9,7 @@ import taichi as ti
 from fem.runtime import has_f64_trigonometry
 
 BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
+STAY = 2                 # body_fallback: the trimmed body stays at x_n (`slowed`)
 
 
 @ti.data_oriented
@@ -17,16 +18,16 @@ class Fallback:
 
     @ti.func
     def slowed(self, b, energy):
-        """For `fall_back` on the ground: the factor s on body b's velocities at the step's end
-        that brings its energy there (`energy`) down to its energy BEFORE, or -s where even its
-        positions hold more than that: then s brings its kinetic energy to the start's."""
+        """For `fall_back` on the ground: the factor on body b's velocities at the step's end that
+        brings its energy there (`energy`) down to its energy BEFORE; where even its positions
+        hold more than that, 0, and body_fallback[b] <- STAY: it stays at x_n."""
         kinetic = self.body_moving[b]
         budget = self.body_total[BEFORE, b] - (energy - kinetic)          # what its speed may hold
         s = ti.cast(0.0, ti.f64)
         if budget >= 0.0 and kinetic > 0.0:
             s = ti.sqrt(ti.min(budget / kinetic, 1.0))
-        elif kinetic > 0.0:
-            s = -ti.sqrt(ti.min(self.body_kinetic_before[b] / kinetic, 1.0))
+        elif budget < 0.0:
+            self.body_fallback[b] = STAY
         return s
 
     @ti.func
@@ -72,9 +73,8 @@ class Fallback:
         for i in range(self.model.vertex_count[None]):
             b, f = self.model.vertex_body[i], self.island(self.model.vertex_body[i])    # f: whose trim
             if self.body_fallback[f] and self.model.free[i] > 0 and (self.body_touching[f] or ti.static(self.effects.has_contact)):
-                s = self.body_speed[f]
-                v[i] *= ti.cast(ti.max(s, 0.0), float)
-                if s < 0.0:          # no motion from here lowers its energy (a turned linear body)
+                v[i] *= ti.cast(self.body_speed[f], float)
+                if self.body_fallback[f] == STAY:     # no motion from here lowers its energy (a turned linear body)
                     x[i] = x_n[i]
             elif self.body_fallback[b] and self.model.free[i] > 0:
                 r = self.body_inertia[b] @ (ti.cast(x_n[i], ti.f64) - self.body_centre[b])
