@@ -9,7 +9,7 @@ the integrator's history and which bodies sleep.
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import taichi as ti
@@ -45,6 +45,8 @@ class StepInfo:
         the energy and angular momentum of the conserving scheme; a rise taken out of any other
         Newton step) is part of the scheme and is not counted.
     rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
+    retried: bodies whose second-order solve failed (they would have been trimmed), so that the
+        step was taken again by backward Euler, whose name `integrator` then gives.
     """
 
     finite: bool
@@ -57,6 +59,7 @@ class StepInfo:
     rotation_ms: float
     solve_ms: float
     integrator: str = "backward-euler"    # the step's own: a two-step integrator restarts with backward Euler
+    retried: int = 0
 
 
 @dataclass(frozen=True)
@@ -111,8 +114,13 @@ class ImplicitSolver:
                  self.preconditioning, self.linear, self.newton, self.safeguards, self.history)
         return parts + ((self.patches,) if self.patches is not None else ())
 
-    def step(self, state_in, state_out, dt):
+    def step(self, state_in, state_out, dt, retry=True):
         """One implicit step from state_in into state_out; returns a StepInfo.
+
+        A second-order step whose solve failed for some body (the safeguards found a rise no
+        projection can pay for, and would give it a rigid step) is taken again as a backward
+        Euler step (retry): it damps what the second-order rule could not follow (an inverted
+        start at dt 0.5 s), and the next step starts the history anew.
 
         state_in is never written. When the result is not finite, state_out holds garbage
         and the caller keeps state_in (a rejected step is a step not swapped in). The step
@@ -121,10 +129,12 @@ class ImplicitSolver:
         """
         start = time.perf_counter()
         settings, model, p = self.settings, self.model, self.potential
+        if not retry:
+            self.history.forget()
         corotational, ground, contact = model.any_corotational, self.switches.ground, self.switches.contact
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
-        integrator = chosen(settings.integrator, ground or contact)     # "auto": by the scene
+        integrator = chosen(settings.integrator, ground or contact) if retry else "backward-euler"
         rho = settings.rho_infinity
         if rho is None:          # by the scene: rest where damped, no ringing on a ground's or contact's penalty
             rho = DAMPED_RHO if self.effects.damped or ground or contact else 1.0
@@ -185,6 +195,10 @@ class ImplicitSolver:
         bad, trimmed, rigid = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not contact,
                                                          newton, accel, target.one_step, conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
+        if retry and rigid > 0 and newton and integrator != "backward-euler":
+            self.end_known = None                   # start again from x_n: its rotations anew
+            again = self.step(state_in, state_out, dt, retry=False)
+            return replace(again, retried=int(rigid), solve_ms=1e3 * (time.perf_counter() - start) - again.rotation_ms)
         if finite and rigid > 0 and not contact:     # a rigid step's rounding strains a stiff body in f32
             rotation_ms += self.update_rotations(p.x, corotational)[0]
             self.safeguards.settle(state_in.x, p.x, p.v)
