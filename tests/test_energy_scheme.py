@@ -37,7 +37,7 @@ def fall(E, integrator, step, ground=None, dt=0.02, steps=25):
     start, trimmed = centre_height(sim), 0
     for _ in range(steps):
         info = sim.step()
-        trimmed += info["energy_limited"]
+        trimmed += info["energy_limited"] + info["retried"]
         assert not any(sim.asleep), "a falling body never sleeps"
     return start - centre_height(sim), trimmed
 
@@ -76,7 +76,7 @@ def test_the_conserving_scheme_keeps_energy_and_angular_momentum_over_ten_second
     trimmed, energies = 0, []
     for _ in range(500):
         info = sim.step()
-        trimmed += info["energy_limited"]
+        trimmed += info["energy_limited"] + info["retried"]
         energies.append(sim.stats()["total_energy"])
     L = angular_momentum(sim)
     assert trimmed == 0
@@ -128,5 +128,6 @@ def test_converged_means_within_the_tolerance_at_the_answer(f64, integrator, E, 
             scale = np.sqrt(((m * v_hat) ** 2).sum() + ((h * f) ** 2).sum())
             assert residual <= 1.05 * tolerance * scale, (k, residual / scale, info["residual"])
             checked += 1
-        v_prev, v_n, restart = v_n, v, info["energy_limited"] > 0     # a trim starts the history again
+        restart = info["energy_limited"] > 0 or info["integrator"] == "backward-euler"   # the history starts again
+        v_prev, v_n = v_n, v
     assert checked >= 4

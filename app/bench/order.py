@@ -81,7 +81,8 @@ def measured_drift(seconds, integrators):
         start = sim.stats()
         times, energies, trimmed = [0.0], [1.0], 0
         for k in range(1, round(seconds / DRIFT_DT) + 1):
-            trimmed += sim.step()["energy_limited"]
+            info = sim.step()
+            trimmed += info["energy_limited"] + info["retried"]
             if k % DRIFT_SAMPLE == 0:
                 times.append(k * DRIFT_DT)
                 energies.append(sim.stats()["total_energy"] / start["total_energy"])

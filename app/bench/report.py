@@ -53,7 +53,7 @@ def explanation(results):
         "Taichi kernels compiled beforehand; *Newton*: Newton iterations per step and *iters*: linear solver "
         "iterations per step (means); *ns/tet/iter*: a step's solve time per iteration and tet; *rot ms*: "
         "rotation extraction per step; *halvings*: line-search step halvings and *E-limited*: bodies whose "
-        "energy rise was scaled back, both summed over the run; *B/tet*: memory of the solver's data (Taichi "
+        "solve failed, so that the safeguard trimmed their step or took it again by backward Euler, both summed over the run; *B/tet*: memory of the solver's data (Taichi "
         "fields of model, state and solver; for the direct solver the matrix and its factor); *err t*: RMS "
         "vertex distance to the reference at time t, divided by the bounding-box diagonal; *vol*: largest "
         "|volume / rest volume - 1| of any body; *energy*: (kinetic + elastic) energy at the end over its "
