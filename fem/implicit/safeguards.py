@@ -42,6 +42,7 @@ Fields (bodies of the capacity; energies summed in float64):
     body_speed (bodies,)         a trimmed body's velocity factor on the ground (`slowed`)
     body_clearance (bodies,)     m: its lowest vertex's height above the ground at the step's end
     body_kinetic_before (bodies,)  J: its kinetic energy BEFORE the step
+    body_elastic_before (bodies,)  J: its elastic energy BEFORE the step (`strained`)
     body_moving (bodies,)        J: its kinetic energy (`rigid_motion`)
 """
 
@@ -61,6 +62,9 @@ LIFT = 0.1
 # round-off: scaling a blown-up step's deformation (1.5e10 J made from 0.67 J) back by 1 - lam
 # left 2e3 J where the formula said 0 (the sliver hard case, f32, dt 0.5 s)
 FAILED = 0.5
+# A trimmed body whose elastic energy at the start was above this share of its kinetic energy is
+# strained (`strained`): its step is taken again by backward Euler, not rigidly
+STRAINED = 1e-3
 FAR = 1e30           # m: the clearance of a body when there is no ground
 THREE_I32 = ti.types.vector(3, ti.i32)
 
@@ -98,6 +102,7 @@ class Safeguards(Fallback):
         self.body_moving = ti.field(ti.f64, nb)
         self.body_clearance = ti.field(float, nb)
         self.body_kinetic_before = ti.field(ti.f64, nb)
+        self.body_elastic_before = ti.field(ti.f64, nb)
         self.forget_band()
 
     def forget_band(self):
@@ -129,6 +134,20 @@ class Safeguards(Fallback):
             if counts[1] > 0:
                 self.fall_back(x_n, v_n, x, v, dt)
         return ti.Vector([bad, counts[0], counts[1]], ti.i32)
+
+    @ti.kernel
+    def strained(self) -> ti.i32:
+        """The bodies trimmed this step that began it strained: holding elastic energy above
+        STRAINED of their kinetic energy (an inverted start; a strained body spinning at dt 0.5 s),
+        where a rigid step would keep that strain for as long as the solve keeps failing (the
+        solver takes the step again by backward Euler). A stiff body that moves as one (spinning
+        or falling at E 1e10: strains of round-off, 1e-8 of its kinetic energy) is not strained."""
+        count = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if self.body_fallback[self.island(b)] and self.body_elastic_before[b] > STRAINED * self.body_kinetic_before[b]:
+                count += 1
+        return count
 
     @ti.func
     def check_finite(self, x: ti.template(), v: ti.template()):
@@ -198,6 +217,7 @@ class Safeguards(Fallback):
             for b in range(self.model.body_count[None]):     # L about the centre: the conserving target
                 self.body_spin_before[b] = self.body_inertia[b] @ self.body_spin[b]
                 self.body_kinetic_before[b] = self.body_moving[b]
+                self.body_elastic_before[b] = self.body_elastic[b]
             if ti.static(self.effects.has_contact):          # one island: body 0's entry holds the sum
                 ti.loop_config(serialize=True)
                 for b in range(1, self.model.body_count[None]):

@@ -46,7 +46,8 @@ class StepInfo:
         Newton step) is part of the scheme and is not counted.
     rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
     retried: bodies whose second-order solve failed (they would have been trimmed), so that the
-        step was taken again by backward Euler, whose name `integrator` then gives.
+        step was taken again by backward Euler, whose name `integrator` then gives: where one of
+        them began the step holding more elastic than kinetic energy (`Safeguards.strained`).
     """
 
     finite: bool
@@ -117,10 +118,12 @@ class ImplicitSolver:
     def step(self, state_in, state_out, dt, retry=True):
         """One implicit step from state_in into state_out; returns a StepInfo.
 
-        A second-order step whose solve failed for some body (the safeguards found a rise no
-        projection can pay for, and would give it a rigid step) is taken again as a backward
-        Euler step (retry): it damps what the second-order rule could not follow (an inverted
-        start at dt 0.5 s), and the next step starts the history anew.
+        A second-order step whose solve failed for a body far from its rest shape (the safeguards
+        found a rise no projection can pay for, and would give it a rigid step, which keeps its
+        strain) is taken again as a backward Euler step (retry): that damps what the second-order
+        rule could not follow (an inverted start at dt 0.5 s), and the next step starts the
+        history anew. A failed body that mostly moves (a stiff spinning or falling body) keeps
+        the rigid step, which keeps its motion.
 
         state_in is never written. When the result is not finite, state_out holds garbage
         and the caller keeps state_in (a rejected step is a step not swapped in). The step
@@ -195,7 +198,7 @@ class ImplicitSolver:
         bad, trimmed, rigid = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not contact,
                                                          newton, accel, target.one_step, conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
-        if retry and rigid > 0 and newton and integrator != "backward-euler":
+        if retry and rigid > 0 and newton and integrator != "backward-euler" and self.safeguards.strained():
             self.end_known = None                   # start again from x_n: its rotations anew
             again = self.step(state_in, state_out, dt, retry=False)
             return replace(again, retried=int(rigid), solve_ms=1e3 * (time.perf_counter() - start) - again.rotation_ms)
