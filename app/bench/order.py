@@ -116,12 +116,7 @@ def drift_figure(size, dpi, seconds=DRIFT_SECONDS):
     ax.set_title(f"a free spinning, twisting bar, undamped, dt {DRIFT_DT:g} s (float64)", fontsize=9)
     ax.set_xlim(0.0, seconds)
     ax.legend(fontsize=7)
-
-    def save(file):
-        fig.tight_layout()
-        fig.savefig(file, format="png", dpi=dpi)
-        plt.close(fig)
-    return save, numbers
+    return saver(fig, dpi), numbers
 
 
 def observed_order(step="newton", integrators=tuple(INTEGRATORS)):
@@ -164,9 +159,15 @@ def order_figure(size, dpi):
     ax.set_title(f"a spinning, twisting bar after {SECONDS:g} s, against the same integrator at "
                  f"dt {REFERENCE_DT:g} s (float64)", fontsize=9)
     ax.legend(fontsize=7)
+    return saver(fig, dpi), numbers
+
+
+def saver(fig, dpi):
+    """save(file): writes the figure as a PNG at dpi, then closes it."""
+    import matplotlib.pyplot as plt
 
     def save(file):
         fig.tight_layout()
         fig.savefig(file, format="png", dpi=dpi)
         plt.close(fig)
-    return save, numbers
+    return save
