@@ -16,6 +16,7 @@
 
 import errno
 import fcntl
+import hashlib
 import os
 import re
 import stat
@@ -34,6 +35,8 @@ TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>[1-9]\d{0,6})(\.\w+)?\." + MARK
 # Bytes of the output's name kept in a temporary name: with the rest it stays within the
 # 255 bytes a file name may have, however long a valid output name is.
 NAME_BYTES = 160
+# Hexadecimal digits of a long name's digest in its temporary names.
+DIGEST_CHARACTERS = 8
 
 
 def is_special(path) -> bool:
@@ -47,8 +50,16 @@ def is_special(path) -> bool:
 
 
 def temporary_stem(name: str) -> str:
-    """An output's name as its temporary names carry it: at most NAME_BYTES bytes of it."""
-    return name.encode()[:NAME_BYTES].decode(errors="ignore")
+    """An output's name as its temporary names carry it: the name itself, or, for a name of more
+    than NAME_BYTES bytes, its start and a digest of the whole name, so that two long names that
+    start alike still get temporary names of their own (neither run takes the other for a writer
+    of its file). Bytes as the file system has them: a name need not be valid UTF-8."""
+    data = os.fsencode(name)
+    if len(data) <= NAME_BYTES:
+        return name
+    digest = hashlib.sha256(data).hexdigest()[:DIGEST_CHARACTERS]
+    start = data[:NAME_BYTES - DIGEST_CHARACTERS - 1].decode(errors="ignore")   # no half a character
+    return f"{start}~{digest}"
 
 
 def temporary_prefix(path: Path) -> str:
