@@ -168,11 +168,12 @@ def numbered_path(folder, stem: str, suffix: str) -> Path:
 
 @contextlib.contextmanager
 def signals_handled(signals, handler):
-    """Inside the block, `handler(signum, frame)` handles each of `signals`; afterwards the
-    previous handlers, which the block receives as {signal: handler}, are back. Off the main
-    thread signals stay as they are (and the block receives {})."""
+    """Inside the block, `handler(signum, frame)` handles each of `signals` that is not ignored;
+    afterwards the previous handlers, which the block receives as {signal: handler}, are back.
+    An ignored signal stays ignored: `nohup` ignores SIGHUP so that closing the terminal does
+    not stop the run. Off the main thread signals stay as they are (and the block receives {})."""
     try:
-        previous = {s: signal.signal(s, handler) for s in signals}
+        previous = {s: signal.signal(s, handler) for s in signals if signal.getsignal(s) != signal.SIG_IGN}
     except ValueError:            # not the main thread
         yield {}
         return
@@ -184,8 +185,11 @@ def signals_handled(signals, handler):
 
 
 # What stops a run as Ctrl-C does: a killed job or cancelled CI step (SIGTERM), a closed
-# terminal (SIGHUP), Ctrl-\ (SIGQUIT), and the user signals, whose default also ends the process.
-STOP_SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2]
+# terminal (SIGHUP), Ctrl-\ (SIGQUIT), a CPU-time limit reached (SIGXCPU: `ulimit -t`, batch
+# queues), `kill -USR1`, `-USR2` or `-ALRM`: the signals sent to end a run, whose default would
+# end it with nothing saved. (SIGKILL cannot be caught.)
+STOP_SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2,
+                signal.SIGALRM, signal.SIGXCPU]
 
 
 @contextlib.contextmanager
