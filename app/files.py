@@ -90,10 +90,12 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
         raise FemError(f"{path}: its folder was removed while this run wrote into it") from None
 
     def put_in_place():
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
-        outputs.put_in_place(tmp, path, overwrite)
+        # A signal now would leave the complete file under its temporary name, then remove it.
+        with interrupts_deferred():
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
+            outputs.put_in_place(tmp, path, overwrite)
 
     try:
         try:

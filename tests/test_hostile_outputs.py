@@ -19,7 +19,7 @@ import time
 import imageio.v2
 import pytest
 
-from app import outputs, video
+from app import files, outputs, video
 from test_cli import ROOT, final_error_line, here, one_error_line, run  # noqa: F401  (here is a fixture)
 
 SMALL_EXPORT = ["export", "cube86", "--frames", "3", "--size", "64x64", "--renderer", "software"]
@@ -112,7 +112,7 @@ def test_an_mp4_the_encoder_left_without_its_index_is_not_put_in_place(here, mon
     monkeypatch.setattr(video.imageio.v2, "get_writer", get_writer)
     code, out, err = run(*SMALL_EXPORT, "--out", "o", "--video", "v.mp4")
     assert code == 2
-    one_error_line(err, "v.mp4: ", "the video was not written", "kept the 3 complete frames in o")
+    final_error_line(err, "v.mp4: ", "the video was not written", "kept the 3 complete frames in o")
     assert pngs(here / "o") == [f"frame_0000{i}.png" for i in range(3)]
     assert sorted(p.name for p in here.iterdir()) == ["o"]
 
@@ -126,7 +126,7 @@ def test_a_gif_on_a_full_disk_is_one_error_and_no_file(here, monkeypatch):
     monkeypatch.setattr(video.GifWriter, "close", save_on_a_full_disk)
     code, out, err = run(*SMALL_EXPORT, "--out", "o", "--video", "v.gif")
     assert code == 2
-    one_error_line(err, "v.gif: no space left on device; the video was not written; kept the 3 complete frames")
+    final_error_line(err, "v.gif: no space left on device; the video was not written; kept the 3 complete frames")
     assert "Traceback" not in err
     assert sorted(p.name for p in here.iterdir()) == ["o"] and len(pngs(here / "o")) == 3
 
@@ -148,6 +148,31 @@ def test_every_stopping_signal_keeps_the_rows_in_the_real_file(tmp_path, name):
     assert rows and [r["step"] for r in rows] == list(range(1, len(rows) + 1))
     assert f"kept its {len(rows)} complete rows in s.jsonl" in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.jsonl"]
+
+
+@pytest.fixture
+def handlers_kept():
+    """A signal leaves the stopping signals ignored after the run (its clean-up must not be cut
+    short); put this test process's own handlers back."""
+    kept = {s: signal.getsignal(s) for s in files.STOP_SIGNALS}
+    yield
+    for number, handler in kept.items():
+        signal.signal(number, handler)
+
+
+def test_a_signal_while_the_rows_are_put_in_place_keeps_them(here, monkeypatch, handlers_kept):
+    """A SIGTERM between the last row and the rename removed the complete temporary file."""
+    real = outputs.put_in_place
+
+    def put_in_place(*args):
+        os.kill(os.getpid(), signal.SIGTERM)
+        real(*args)
+
+    monkeypatch.setattr(outputs, "put_in_place", put_in_place)
+    code, out, err = run("simulate", "cube86", "--steps", "2", "--stats", "s.jsonl")
+    assert code == 130, err
+    assert err.strip() == "interrupted after its last step; kept its 2 complete rows in s.jsonl"
+    assert (here / "s.jsonl").read_text().count("\n") == 2 and temporaries_left(here) == []
 
 
 def test_a_run_started_with_sighup_ignored_goes_on_after_one(tmp_path):

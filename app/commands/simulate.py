@@ -55,7 +55,8 @@ def run(args) -> int:
                 progress.update()
     except KeyboardInterrupt:
         kept = f"; kept its {len(rows)} complete rows in {args.stats}" if to_file else ""
-        print(f"interrupted at step {len(rows) + 1} of {args.steps}{kept}", file=sys.stderr)
+        at = f"at step {len(rows) + 1} of {args.steps}" if len(rows) < args.steps else "after its last step"
+        print(f"interrupted {at}{kept}", file=sys.stderr)
         if rows:
             print(summary(sim, rows), file=report)
         return EXIT_INTERRUPTED
