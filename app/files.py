@@ -38,7 +38,7 @@ def check_output(path, option, kind):
     command-line `option` (named in the message).
 
     Catches, before any work: a file where a folder must be (`afile/sub`), a folder
-    given as a file name, and a place where no file can be created (read-only file
+    given as a file name, /dev/stdout redirected to a file, and a place where no file can be created (read-only file
     system, /proc, no permission), by creating and removing a probe file in the
     deepest folder that exists on the way.
     """
@@ -46,6 +46,10 @@ def check_output(path, option, kind):
     where = f"{option} {path}"
     if kind == "file" and outputs.is_special(path):
         return                    # written as a stream (atomic_open)
+    if kind == "file" and outputs.names_a_descriptor(path):
+        # A redirection (`> log.txt`): a file of its own would replace /dev/stdout itself.
+        raise FemError(f"{where}: is a file this run already has open (a redirection to a regular file); "
+                       "give - for standard output, or the file's own name")
     if kind == "file" and path.is_dir():
         raise FemError(f"{where}: is a folder; give a file name")
     folder = path if kind == "folder" else path.parent

@@ -49,6 +49,20 @@ def is_special(path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
+def names_a_descriptor(path) -> bool:
+    """True for /dev/stdout, /dev/fd/N, /proc/self/fd/N, or a link to one of them: a name for
+    a file this process already has open, not a place to put a new file."""
+    path = Path(path)
+    for _ in range(40):                   # a link to a link ...
+        if Path(os.path.realpath(path.parent)).match("/proc/*/fd"):
+            return True
+        if not path.is_symlink():
+            return False
+        target = Path(os.readlink(path))
+        path = target if target.is_absolute() else path.parent / target
+    return False
+
+
 def temporary_stem(name: str) -> str:
     """An output's name as its temporary names carry it: the name itself, or, for a name of more
     than NAME_BYTES bytes, its start and a digest of the whole name, so that two long names that

@@ -224,6 +224,20 @@ def test_an_export_with_stdout_on_a_full_disk_keeps_its_frames(tmp_path):
     assert len(pngs(tmp_path / "o")) == 3 and video_frames(tmp_path / "v.mp4") == 3
 
 
+@pytest.mark.skipif(not os.path.islink("/dev/stdout"), reason="/dev/stdout is not a link to /proc here")
+@pytest.mark.parametrize("name", ["/dev/stdout", "/dev/fd/1", "link"])
+def test_stats_into_a_redirected_stdout_is_refused_and_dev_stdout_stays(tmp_path, name):
+    """`--stats /dev/stdout > log.txt` said "file exists; use --overwrite", and with --overwrite
+    (as root) would have put a file of its own in place of /dev/stdout."""
+    os.symlink("/dev/stdout", tmp_path / "link")
+    with open(tmp_path / "log.txt", "w") as log:
+        code, err = main_py("simulate", "cube86", "--steps", "1", "--stats", name, cwd=tmp_path, stdout=log)
+    assert code == 2, err
+    one_error_line(err, f"--stats {name}: is a file this run already has open", "give - for standard output")
+    assert os.path.islink("/dev/stdout") and os.readlink(tmp_path / "link") == "/dev/stdout"
+    assert (tmp_path / "log.txt").read_text() == ""
+
+
 def test_stats_on_a_full_disk_is_one_error():
     code, out, err = run("simulate", "cube86", "--steps", "2", "--stats", "/dev/full")
     assert code == 2
