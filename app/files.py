@@ -96,9 +96,7 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
     def put_in_place():
         # A signal now would leave the complete file under its temporary name, then remove it.
         with interrupts_deferred():
-            umask = os.umask(0)
-            os.umask(umask)
-            os.fchmod(fd, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
+            outputs.give_usual_permissions(fd)
             outputs.put_in_place(tmp, path, overwrite)
 
     try:

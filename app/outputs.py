@@ -5,7 +5,7 @@
 - Temporary files carry this program's marker and the writing process's id
   (`.NAME.PID.xxxx.softfem-part`), so two runs never share one, and a later run can tell the
   leftovers of a killed run (SIGKILL: no clean-up) from those of a run still going, and
-  remove them; a user's own file of a similar name (`.notes.2023.part`) is never touched.
+  remove them (a killed run's stats rows are kept, under a name of their own); a user's own file of a similar name (`.notes.2023.part`) is never touched.
 - Without --overwrite a finished file is put in place only if nothing took its name in
   the meantime (a hard link cannot replace a file, a rename can): a run never claims a
   file another run wrote.
@@ -129,6 +129,29 @@ def remove_stale_temporaries(folder, name=None) -> int:
     return removed
 
 
+def rescue_rows(path: Path) -> list[str]:
+    """Put the complete rows that killed runs (SIGKILL, the out-of-memory killer: no chance to
+    clean up) left under a temporary name for the rows file `path` beside it, under names of
+    their own (path-2.jsonl, ...), instead of deleting hours of results; returns a note for each."""
+    notes = []
+    for temporary, pid in temporaries(path.parent, path.name):
+        if process_alive(pid):
+            continue
+        try:
+            with open(temporary, "r+b") as f:
+                rows = truncate_to_last_line(f.fileno())
+                give_usual_permissions(f.fileno())
+            if rows:
+                kept = free_name(path)
+                os.link(temporary, kept)      # fails if the name was taken meanwhile: never replaces
+                notes.append(f"note: a run of {path} that was killed (process {pid}) left {rows} complete "
+                             f"rows; they are in {kept}")
+            os.unlink(temporary)
+        except (OSError, FemError):
+            pass                              # left where it is: never lost
+    return notes
+
+
 def holds_user_files(folder) -> bool:
     """True when `folder` has anything in it besides this program's temporary files (a killed
     run's, or this run's own; a run still writing into it holds its lock: FolderLock)."""
@@ -192,6 +215,13 @@ def open_stream(path, overwrite: bool):
         raise FemError(f"{path}: file exists; use --overwrite to replace it") from None
     except OSError as error:
         raise write_failed(path, error) from None
+
+
+def give_usual_permissions(file_descriptor):
+    """The permissions a new file gets (rw for all, less the umask): mkstemp makes 0600."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.fchmod(file_descriptor, 0o666 & ~umask)
 
 
 def truncate_to_last_line(file_descriptor):

@@ -92,6 +92,28 @@ def test_a_killed_exports_temporary_video_is_removed_by_the_next_export(here):
     assert not leftover.exists() and video_frames(here / "v.mp4") == 3
 
 
+def test_a_killed_runs_rows_are_kept_by_the_next_run(here):
+    """SIGKILL (or the out-of-memory killer) leaves the rows under the temporary name; the next
+    run to the same file deleted them silently."""
+    process = start(ENDLESS_STATS, here)
+
+    def hidden():
+        return [p for p in here.glob(f".s.jsonl.{process.pid}.*{outputs.MARKER}") if p.stat().st_size]
+
+    wait_for(hidden, process)
+    process.kill()
+    process.wait(timeout=60)
+    left = hidden()[0].read_text()
+    complete = left[:left.rfind("\n") + 1]
+    code, out, err = run("simulate", "cube86", "--steps", "2", "--stats", "s.jsonl")
+    assert code == 0, err
+    rows = complete.count("\n")
+    assert (f"note: a run of s.jsonl that was killed (process {process.pid}) left {rows} complete rows; "
+            "they are in s-2.jsonl") in err.splitlines()
+    assert (here / "s-2.jsonl").read_text() == complete and (here / "s.jsonl").read_text().count("\n") == 2
+    assert sorted(p.name for p in here.iterdir()) == ["s-2.jsonl", "s.jsonl"]
+
+
 # ---------------------------------------------------------------- a video the encoder could not finish
 
 def test_an_mp4_the_encoder_left_without_its_index_is_not_put_in_place(here, monkeypatch):

@@ -34,7 +34,8 @@ def run(args) -> int:
     to_file = args.stats is not None and args.stats != "-"
     if to_file:
         refuse_overwrite(args.stats, args.overwrite)
-        outputs.remove_stale_temporaries(Path(args.stats).parent, Path(args.stats).name)
+        for note in outputs.rescue_rows(Path(args.stats)):
+            print(note, file=sys.stderr)
     device.start(args)
     sim = build_simulation(args)
     rows = Tally()
