@@ -38,9 +38,9 @@ def check_output(path, option, kind):
     command-line `option` (named in the message).
 
     Catches, before any work: a file where a folder must be (`afile/sub`), a folder
-    given as a file name, /dev/stdout redirected to a file, and a place where no file can be created (read-only file
-    system, /proc, no permission), by creating and removing a probe file in the
-    deepest folder that exists on the way.
+    given as a file name, /dev/stdout redirected to a file, and a place where no file
+    can be created (read-only file system, /proc, no permission), by creating and
+    removing a probe file in the deepest folder that exists on the way.
     """
     path = Path(path)
     where = f"{option} {path}"

@@ -5,7 +5,8 @@
 - Temporary files carry this program's marker and the writing process's id
   (`.NAME.PID.xxxx.softfem-part`), so two runs never share one, and a later run can tell the
   leftovers of a killed run (SIGKILL: no clean-up) from those of a run still going, and
-  remove them (a killed run's stats rows are kept, under a name of their own); a user's own file of a similar name (`.notes.2023.part`) is never touched.
+  remove them (a killed run's stats rows are kept, under a name of their own); a user's
+  own file of a similar name (`.notes.2023.part`) is never touched.
 - Without --overwrite a finished file is put in place only if nothing took its name in
   the meantime (a hard link cannot replace a file, a rename can): a run never claims a
   file another run wrote.
