@@ -38,6 +38,9 @@ TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>[1-9]\d{0,6})(\.\w+)?\." + MARK
 NAME_BYTES = 160
 # Hexadecimal digits of a long name's digest in its temporary names.
 DIGEST_CHARACTERS = 8
+# Seconds by which a process may seem to have started after its file was written (the clock
+# set forward meanwhile) and still be taken for its writer.
+CLOCK_SLACK = 60.0
 
 
 def is_special(path) -> bool:
@@ -92,6 +95,32 @@ def process_alive(pid: int) -> bool:
     return True
 
 
+def process_started(pid: int) -> float | None:
+    """When process `pid` started, in seconds since the epoch; None where the system does not
+    say (no /proc)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        return boot + int(fields[19]) / os.sysconf("SC_CLK_TCK")     # field 22: start, in ticks since boot
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def writing(path: Path, pid: int) -> bool:
+    """True while process `pid` may still be writing its temporary file `path`: it runs, and it
+    did not start after the file was last written. After a restart, or once process ids wrap
+    around, another process has that id: it is no writer of an old file, which is stale."""
+    if not process_alive(pid):
+        return False
+    started = process_started(pid)
+    try:
+        written = path.stat().st_mtime
+    except OSError:
+        return True                   # gone meanwhile: nothing to remove
+    return started is None or started < written + CLOCK_SLACK
+
+
 def temporaries(folder, name=None) -> list[tuple[Path, int]]:
     """[(path, writer's process id)] of this program's temporary files in `folder` (of output
     `name` only, if given)."""
@@ -109,12 +138,13 @@ def temporaries(folder, name=None) -> list[tuple[Path, int]]:
 
 def stale_temporaries(folder, name=None):
     """The temporary files in `folder` (of output `name` only, if given) whose writer is gone."""
-    return [path for path, pid in temporaries(folder, name) if not process_alive(pid)]
+    return [path for path, pid in temporaries(folder, name) if not writing(path, pid)]
 
 
 def writers_of(path: Path) -> list[int]:
     """The process ids of the other running processes writing the output `path` now."""
-    return [pid for _, pid in temporaries(path.parent, path.name) if pid != os.getpid() and process_alive(pid)]
+    return [pid for temporary, pid in temporaries(path.parent, path.name)
+            if pid != os.getpid() and writing(temporary, pid)]
 
 
 def remove_stale_temporaries(folder, name=None) -> int:
@@ -136,7 +166,7 @@ def rescue_rows(path: Path) -> list[str]:
     their own (path-2.jsonl, ...), instead of deleting hours of results; returns a note for each."""
     notes = []
     for temporary, pid in temporaries(path.parent, path.name):
-        if process_alive(pid):
+        if writing(temporary, pid):
             continue
         try:
             with open(temporary, "r+b") as f:

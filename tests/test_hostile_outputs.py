@@ -114,6 +114,24 @@ def test_a_killed_runs_rows_are_kept_by_the_next_run(here):
     assert sorted(p.name for p in here.iterdir()) == ["s-2.jsonl", "s.jsonl"]
 
 
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="no /proc: a process's start is not known")
+def test_a_leftover_whose_process_id_another_process_has_now_is_stale(here):
+    """After a restart, a killed export's `.v.mp4.PID...` named a process id some other program
+    had by then: "another run (process PID) is writing this file", for as long as it ran."""
+    other = subprocess.Popen(["sleep", "120"])                     # started after the leftover was written
+    try:
+        leftover = here / f".v.mp4.{other.pid}.{outputs.MARKER}.mp4"
+        leftover.write_bytes(b"half a video")
+        an_hour_ago = time.time() - 3600
+        os.utime(leftover, (an_hour_ago, an_hour_ago))
+        code, out, err = run(*SMALL_EXPORT, "--out", "o", "--video", "v.mp4")
+    finally:
+        other.kill()
+        other.wait()
+    assert code == 0, err
+    assert not leftover.exists() and video_frames(here / "v.mp4") == 3
+
+
 # ---------------------------------------------------------------- a video the encoder could not finish
 
 def test_an_mp4_the_encoder_left_without_its_index_is_not_put_in_place(here, monkeypatch):
