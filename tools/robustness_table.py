@@ -148,7 +148,8 @@ PROCESS_CLASSES = [
     ("full disk (a 64 kB tmpfs, and a writer raising ENOSPC)", "exit 2, `PATH: no space left on device; kept the "
      "N complete rows` (or frames, and the video closed on them)", "test_outputs.py"),
     ("a killed run's `.NAME.PID.xxxx.softfem-part` files", "removed by the next run into the folder (their process is "
-     "gone); they never make a folder count as non-empty", "test_outputs.py"),
+     "gone, or the id is now another process's, started later); they never make a folder count as non-empty",
+     "test_outputs.py"),
     ("a killed run's stats rows (SIGKILL)", "the next run to the same file keeps them beside it as s-2.jsonl, "
      "with a note", "test_hostile_outputs.py"),
     ("a user's `.thesis.2023.part`, `.x.99999999999999999999.part` beside the frames or video",
