@@ -13,7 +13,8 @@
 Bad input ends with one line `error: ...` on stderr and exit code 2, before any
 work starts where it can be found out then (a traceback only with --debug).
 Exit codes: 0 done, 1 the run failed (every step rejected), 2 bad input,
-130 interrupted (Ctrl-C, SIGTERM, SIGHUP, SIGQUIT, SIGUSR1/2; complete files and rows are kept).
+130 interrupted (Ctrl-C, SIGTERM, SIGHUP, SIGQUIT, SIGUSR1/2, SIGALRM, SIGXCPU; complete files
+and rows are kept).
 """
 
 import argparse
@@ -100,9 +101,15 @@ class Parser(argparse.ArgumentParser):
                 return f"; did you mean {close[0]}?"
         return ""
 
+    def print_help(self, file=None):
+        """argparse's, except that a write that fails is not ignored: help sent to a full disk
+        (`help export > /dev/full`) is an error, not lost with exit code 0."""
+        (file or sys.stdout).write(self.format_help())
+
     def exit(self, status=0, message=None):
         """After --help or --version: what they printed is flushed here, so that a reader that
-        went away (`--version | true`) ends the run quietly, as in main()."""
+        went away (`--version | true`) ends the run quietly, as in main(), and a full disk
+        reaches main() as an OSError."""
         try:
             sys.stdout.flush()
         except BrokenPipeError:
@@ -385,7 +392,14 @@ def main(argv=None) -> int:
         example = " ".join(argv if not argv[0].startswith("-") else [DEFAULT_SCENE, *argv])
         parser.error(f"no command given; commands: {', '.join(commands)}; "
                      f"e.g. `{parser.prog} {command_taking(argv, commands)} {example}`")
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except BrokenPipeError:             # --help to a reader that went away
+        return reader_gone()
+    except OSError as error:            # --help or --version into a full disk
+        if error.errno not in outputs.WRITE_ERRORS:
+            raise
+        return stdout_failed(error)
     if args.command is None:
         parser.error(f"no command given; commands: {', '.join(commands)}")
 
@@ -410,7 +424,15 @@ def main(argv=None) -> int:
     except OSError as e:
         if args.debug or e.errno not in (errno.ENAMETOOLONG, *outputs.WRITE_ERRORS):
             raise
-        if e.filename is None:          # printing to stdout: it stays unusable until the end
-            reader_gone()
-        print(f"error: {outputs.write_failed(e.filename or 'standard output', e)}", file=sys.stderr)
+        if e.filename is None:
+            return stdout_failed(e)
+        print(f"error: {outputs.write_failed(e.filename, e)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+
+
+def stdout_failed(error: OSError) -> int:
+    """Printing to stdout failed (a full disk, /dev/full): one error line, exit code 2. Stdout
+    stays unusable until the end, so it goes to /dev/null, as reader_gone() does."""
+    reader_gone()
+    print(f"error: {outputs.write_failed('standard output', error)}", file=sys.stderr)
+    return EXIT_BAD_INPUT

@@ -38,14 +38,18 @@ def check_output(path, option, kind):
     command-line `option` (named in the message).
 
     Catches, before any work: a file where a folder must be (`afile/sub`), a folder
-    given as a file name, and a place where no file can be created (read-only file
-    system, /proc, no permission), by creating and removing a probe file in the
-    deepest folder that exists on the way.
+    given as a file name, /dev/stdout redirected to a file, and a place where no file
+    can be created (read-only file system, /proc, no permission), by creating and
+    removing a probe file in the deepest folder that exists on the way.
     """
     path = Path(path)
     where = f"{option} {path}"
     if kind == "file" and outputs.is_special(path):
         return                    # written as a stream (atomic_open)
+    if kind == "file" and outputs.names_a_descriptor(path):
+        # A redirection (`> log.txt`): a file of its own would replace /dev/stdout itself.
+        raise FemError(f"{where}: is a file this run already has open (a redirection to a regular file); "
+                       "give - for standard output, or the file's own name")
     if kind == "file" and path.is_dir():
         raise FemError(f"{where}: is a folder; give a file name")
     folder = path if kind == "folder" else path.parent
@@ -90,10 +94,10 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
         raise FemError(f"{path}: its folder was removed while this run wrote into it") from None
 
     def put_in_place():
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
-        outputs.put_in_place(tmp, path, overwrite)
+        # A signal now would leave the complete file under its temporary name, then remove it.
+        with interrupts_deferred():
+            outputs.give_usual_permissions(fd)
+            outputs.put_in_place(tmp, path, overwrite)
 
     try:
         try:
@@ -168,11 +172,12 @@ def numbered_path(folder, stem: str, suffix: str) -> Path:
 
 @contextlib.contextmanager
 def signals_handled(signals, handler):
-    """Inside the block, `handler(signum, frame)` handles each of `signals`; afterwards the
-    previous handlers, which the block receives as {signal: handler}, are back. Off the main
-    thread signals stay as they are (and the block receives {})."""
+    """Inside the block, `handler(signum, frame)` handles each of `signals` that is not ignored;
+    afterwards the previous handlers, which the block receives as {signal: handler}, are back.
+    An ignored signal stays ignored: `nohup` ignores SIGHUP so that closing the terminal does
+    not stop the run. Off the main thread signals stay as they are (and the block receives {})."""
     try:
-        previous = {s: signal.signal(s, handler) for s in signals}
+        previous = {s: signal.signal(s, handler) for s in signals if signal.getsignal(s) != signal.SIG_IGN}
     except ValueError:            # not the main thread
         yield {}
         return
@@ -184,8 +189,11 @@ def signals_handled(signals, handler):
 
 
 # What stops a run as Ctrl-C does: a killed job or cancelled CI step (SIGTERM), a closed
-# terminal (SIGHUP), Ctrl-\ (SIGQUIT), and the user signals, whose default also ends the process.
-STOP_SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2]
+# terminal (SIGHUP), Ctrl-\ (SIGQUIT), a CPU-time limit reached (SIGXCPU: `ulimit -t`, batch
+# queues), `kill -USR1`, `-USR2` or `-ALRM`: the signals sent to end a run, whose default would
+# end it with nothing saved. (SIGKILL cannot be caught.)
+STOP_SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2,
+                signal.SIGALRM, signal.SIGXCPU]
 
 
 @contextlib.contextmanager

@@ -5,7 +5,8 @@
 - Temporary files carry this program's marker and the writing process's id
   (`.NAME.PID.xxxx.softfem-part`), so two runs never share one, and a later run can tell the
   leftovers of a killed run (SIGKILL: no clean-up) from those of a run still going, and
-  remove them; a user's own file of a similar name (`.notes.2023.part`) is never touched.
+  remove them (a killed run's stats rows are kept, under a name of their own); a user's
+  own file of a similar name (`.notes.2023.part`) is never touched.
 - Without --overwrite a finished file is put in place only if nothing took its name in
   the meantime (a hard link cannot replace a file, a rename can): a run never claims a
   file another run wrote.
@@ -16,6 +17,7 @@
 
 import errno
 import fcntl
+import hashlib
 import os
 import re
 import stat
@@ -34,6 +36,11 @@ TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<pid>[1-9]\d{0,6})(\.\w+)?\." + MARK
 # Bytes of the output's name kept in a temporary name: with the rest it stays within the
 # 255 bytes a file name may have, however long a valid output name is.
 NAME_BYTES = 160
+# Hexadecimal digits of a long name's digest in its temporary names.
+DIGEST_CHARACTERS = 8
+# Seconds by which a process may seem to have started after its file was written (the clock
+# set forward meanwhile) and still be taken for its writer.
+CLOCK_SLACK = 60.0
 
 
 def is_special(path) -> bool:
@@ -46,9 +53,31 @@ def is_special(path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
+def names_a_descriptor(path) -> bool:
+    """True for /dev/stdout, /dev/fd/N, /proc/self/fd/N, or a link to one of them: a name for
+    a file this process already has open, not a place to put a new file."""
+    path = Path(path)
+    for _ in range(40):                   # a link to a link ...
+        if Path(os.path.realpath(path.parent)).match("/proc/*/fd"):
+            return True
+        if not path.is_symlink():
+            return False
+        target = Path(os.readlink(path))
+        path = target if target.is_absolute() else path.parent / target
+    return False
+
+
 def temporary_stem(name: str) -> str:
-    """An output's name as its temporary names carry it: at most NAME_BYTES bytes of it."""
-    return name.encode()[:NAME_BYTES].decode(errors="ignore")
+    """An output's name as its temporary names carry it: the name itself, or, for a name of more
+    than NAME_BYTES bytes, its start and a digest of the whole name, so that two long names that
+    start alike still get temporary names of their own (neither run takes the other for a writer
+    of its file). Bytes as the file system has them: a name need not be valid UTF-8."""
+    data = os.fsencode(name)
+    if len(data) <= NAME_BYTES:
+        return name
+    digest = hashlib.sha256(data).hexdigest()[:DIGEST_CHARACTERS]
+    start = data[:NAME_BYTES - DIGEST_CHARACTERS - 1].decode(errors="ignore")   # no half a character
+    return f"{start}~{digest}"
 
 
 def temporary_prefix(path: Path) -> str:
@@ -64,6 +93,32 @@ def process_alive(pid: int) -> bool:
     except PermissionError:       # someone else's process: alive
         return True
     return True
+
+
+def process_started(pid: int) -> float | None:
+    """When process `pid` started, in seconds since the epoch; None where the system does not
+    say (no /proc)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        return boot + int(fields[19]) / os.sysconf("SC_CLK_TCK")     # field 22: start, in ticks since boot
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def writing(path: Path, pid: int) -> bool:
+    """True while process `pid` may still be writing its temporary file `path`: it runs, and it
+    did not start after the file was last written. After a restart, or once process ids wrap
+    around, another process has that id: it is no writer of an old file, which is stale."""
+    if not process_alive(pid):
+        return False
+    started = process_started(pid)
+    try:
+        written = path.stat().st_mtime
+    except OSError:
+        return True                   # gone meanwhile: nothing to remove
+    return started is None or started < written + CLOCK_SLACK
 
 
 def temporaries(folder, name=None) -> list[tuple[Path, int]]:
@@ -83,12 +138,13 @@ def temporaries(folder, name=None) -> list[tuple[Path, int]]:
 
 def stale_temporaries(folder, name=None):
     """The temporary files in `folder` (of output `name` only, if given) whose writer is gone."""
-    return [path for path, pid in temporaries(folder, name) if not process_alive(pid)]
+    return [path for path, pid in temporaries(folder, name) if not writing(path, pid)]
 
 
 def writers_of(path: Path) -> list[int]:
     """The process ids of the other running processes writing the output `path` now."""
-    return [pid for _, pid in temporaries(path.parent, path.name) if pid != os.getpid() and process_alive(pid)]
+    return [pid for temporary, pid in temporaries(path.parent, path.name)
+            if pid != os.getpid() and writing(temporary, pid)]
 
 
 def remove_stale_temporaries(folder, name=None) -> int:
@@ -102,6 +158,29 @@ def remove_stale_temporaries(folder, name=None) -> int:
         except OSError:
             pass
     return removed
+
+
+def rescue_rows(path: Path) -> list[str]:
+    """Put the complete rows that killed runs (SIGKILL, the out-of-memory killer: no chance to
+    clean up) left under a temporary name for the rows file `path` beside it, under names of
+    their own (path-2.jsonl, ...), instead of deleting hours of results; returns a note for each."""
+    notes = []
+    for temporary, pid in temporaries(path.parent, path.name):
+        if writing(temporary, pid):
+            continue
+        try:
+            with open(temporary, "r+b") as f:
+                rows = truncate_to_last_line(f.fileno())
+                give_usual_permissions(f.fileno())
+            if rows:
+                kept = free_name(path)
+                os.link(temporary, kept)      # fails if the name was taken meanwhile: never replaces
+                notes.append(f"note: a run of {path} that was killed (process {pid}) left {rows} complete "
+                             f"rows; they are in {kept}")
+            os.unlink(temporary)
+        except (OSError, FemError):
+            pass                              # left where it is: never lost
+    return notes
 
 
 def holds_user_files(folder) -> bool:
@@ -167,6 +246,13 @@ def open_stream(path, overwrite: bool):
         raise FemError(f"{path}: file exists; use --overwrite to replace it") from None
     except OSError as error:
         raise write_failed(path, error) from None
+
+
+def give_usual_permissions(file_descriptor):
+    """The permissions a new file gets (rw for all, less the umask): mkstemp makes 0600."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.fchmod(file_descriptor, 0o666 & ~umask)
 
 
 def truncate_to_last_line(file_descriptor):

@@ -309,7 +309,8 @@ def test_a_killed_runs_temporary_files_are_removed_and_do_not_block(here):
     code, out, err = run("simulate", "cube", "--steps", "1", "--stats", "s.jsonl")
     assert code == 0, err
     assert sorted(p.name for p in here.iterdir()) == [f".s.jsonl.{os.getpid()}.live.softfem-part", "o",
-                                                      "s.jsonl", "v.mp4"]
+                                                      "s-2.jsonl", "s.jsonl", "v.mp4"]
+    assert (here / "s-2.jsonl").read_text() == '{"step": 1}\n'        # the killed run's rows are kept
 
 
 USERS_OWN = [".thesis.2023.part", ".draft.v2.31337.part.txt", ".x.99999999999999999999.part",

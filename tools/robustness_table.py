@@ -148,7 +148,21 @@ PROCESS_CLASSES = [
     ("full disk (a 64 kB tmpfs, and a writer raising ENOSPC)", "exit 2, `PATH: no space left on device; kept the "
      "N complete rows` (or frames, and the video closed on them)", "test_outputs.py"),
     ("a killed run's `.NAME.PID.xxxx.softfem-part` files", "removed by the next run into the folder (their process is "
-     "gone); they never make a folder count as non-empty", "test_outputs.py"),
+     "gone, or the id is now another process's, started later); they never make a folder count as non-empty",
+     "test_outputs.py"),
+    ("a killed run's stats rows (SIGKILL)", "the next run to the same file keeps them beside it as s-2.jsonl, "
+     "with a note", "test_hostile_outputs.py"),
+    ("a user's `.thesis.2023.part`, `.x.99999999999999999999.part` beside the frames or video",
+     "kept: only names with this program's marker and a process id that is gone are removed", "test_hostile_outputs.py"),
+    ("SIGHUP, SIGQUIT, SIGUSR1/2, SIGALRM, SIGXCPU", "as SIGTERM: exit 130, the complete rows in the real file "
+     "(not a hidden temporary one), as many video frames as PNGs; under `nohup` SIGHUP is ignored",
+     "test_hostile_outputs.py"),
+    ("an MP4 the encoder left without its index, a GIF on a full disk", "exit 2, `the video was not written; kept "
+     "the N complete frames`; nothing broken put in place", "test_hostile_outputs.py"),
+    ("stdout on /dev/full (simulate, scenes, help, export -h, --version)", "exit 2, `error: standard output: no space "
+     "left on device`", "test_hostile_outputs.py"),
+    ("`--stats /dev/stdout > log.txt`", "exit 2: a file this run already has open; give - for standard output "
+     "(never a file of its own in place of /dev/stdout)", "test_hostile_outputs.py"),
     ("two or three SIGTERMs 5 ms apart", "exit 130, complete rows kept; later signals are ignored",
      "test_outputs.py"),
     ("`simulate --stats - \\| head -c 100`", "stops quietly, exit 141 (128 + SIGPIPE), no traceback",

@@ -34,7 +34,8 @@ def run(args) -> int:
     to_file = args.stats is not None and args.stats != "-"
     if to_file:
         refuse_overwrite(args.stats, args.overwrite)
-        outputs.remove_stale_temporaries(Path(args.stats).parent, Path(args.stats).name)
+        for note in outputs.rescue_rows(Path(args.stats)):
+            print(note, file=sys.stderr)
     device.start(args)
     sim = build_simulation(args)
     rows = Tally()
@@ -55,7 +56,8 @@ def run(args) -> int:
                 progress.update()
     except KeyboardInterrupt:
         kept = f"; kept its {len(rows)} complete rows in {args.stats}" if to_file else ""
-        print(f"interrupted at step {len(rows) + 1} of {args.steps}{kept}", file=sys.stderr)
+        at = f"at step {len(rows) + 1} of {args.steps}" if len(rows) < args.steps else "after its last step"
+        print(f"interrupted {at}{kept}", file=sys.stderr)
         if rows:
             print(summary(sim, rows), file=report)
         return EXIT_INTERRUPTED
