@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fem.errors import FemError, excerpt
-from fem.limits import check_file_size
+from fem.limits import amount, check_file_size
 from fem.mesh import check_tet_count, prepare_mesh
 
 # Bump when the output for the same input changes (tool, options, file layout),
@@ -73,7 +73,7 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
     last_cache_hit = mesh is not None
     if mesh is None:
         estimate = round(TETS_AT_5_PERCENT * (0.05 / edge_length) ** 3)
-        check_tet_count(estimate, path, f"edge_length {edge_length} gives about {estimate:,} tets")
+        check_tet_count(estimate, path, f"edge_length {edge_length} gives about {amount(estimate)} tets")
         start = time.perf_counter()
         vertices, faces = load_surface(path)
         if progress:

@@ -75,11 +75,11 @@ def check_file_size(path, limit=None):
 
 
 def check_body_count(count, where):
-    check_size(count, MAX_BODIES, where, f"{count:,} bodies")
+    check_size(count, MAX_BODIES, where, f"{amount(count)} bodies")
 
 
 def check_scene_tets(count, where):
-    check_tets(count, where, f"{count:,} tets in all bodies together", "in a scene")
+    check_tets(count, where, f"{amount(count)} tets in all bodies together", "in a scene")
 
 
 def check_tets(count, where, what, scope, limit=None):
@@ -135,7 +135,21 @@ def cuda_memory():
 
 
 def gigabytes(count):
-    return f"{count / 1e9:,.1f} GB" if count >= 1e8 else f"{count / 1e6:,.0f} MB"
+    """`count` bytes for a message, in MB or GB; of any size (amount())."""
+    if count < 10**8:
+        return f"{count / 1e6:,.0f} MB"
+    return f"{count / 1e9:,.1f} GB" if count < 10**15 else f"{amount(count // 10**9)} GB"
+
+
+def amount(count) -> str:
+    """A count for a message: "22,978,239", or from 1e15 on "1.33e+60", cut to three digits.
+    A count asked for by a resolution of 1e20 has 60 digits, unreadable, and past 1e308 a
+    Python integer has no float to print it with."""
+    count = int(count)
+    if count < 10**15:
+        return f"{count:,}"
+    digits = str(count)
+    return f"{digits[0]}.{digits[1:3]}e+{len(digits) - 1}"
 
 
 def check_range(value, low, high, where, unit=""):

@@ -89,7 +89,7 @@ def check_tet_count(count, source, what=None):
     memory's limit (fem.limits.check_tets); --allow-large (limits.lifted) lifts it.
 
     what: how the count came about, for the message (default "{count} tets")."""
-    limits.check_tets(count, source, what or f"{count:,} tets", "per mesh", MAX_TETS)
+    limits.check_tets(count, source, what or f"{limits.amount(count)} tets", "per mesh", MAX_TETS)
 
 
 def prepare_mesh(vertices, tets, source, *, tet_lines=None):
