@@ -12,6 +12,7 @@ folder checked here (`offline_cache_folder`), or with no cache.
 
 import os
 import pwd
+import re
 import tempfile
 
 LOG_LEVELS = ("trace", "debug", "info", "warn", "error", "critical", "off")
@@ -25,10 +26,11 @@ def prepare():
     if not os.environ.get("HOME"):
         os.environ["HOME"] = home_folder()
     level = os.environ.get("TI_LOG_LEVEL")
-    if level and level.lower() not in LOG_LEVELS:
+    if level and level not in LOG_LEVELS:          # Taichi takes them in lower case only
         set_aside("TI_LOG_LEVEL", f"not a Taichi log level ({', '.join(LOG_LEVELS)})")
     threads = os.environ.get("TI_CPU_MAX_NUM_THREADS")
-    if threads and not (threads.strip().isdigit() and 1 <= int(threads) <= MAX_THREADS):
+    # ASCII digits: Python's isdigit() also takes '²', which int() and Taichi do not.
+    if threads and not (re.fullmatch(r"\s*[0-9]+\s*", threads) and 1 <= int(threads) <= MAX_THREADS):
         set_aside("TI_CPU_MAX_NUM_THREADS", f"must be a whole number of threads from 1 to {MAX_THREADS}")
 
 
