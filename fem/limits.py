@@ -29,8 +29,9 @@ MAX_BODIES = 256             # the coarse preconditioner grows with the square o
 BYTES_PER_TET = {"f32": 550, "f64": 850}
 MEMORY_SHARE = 0.5           # of the backend's memory, for the tets of one scene: the rest is the machine's
 MAX_FILE_BYTES = 256 * 2**20  # a mesh file; a million-tet MEDIT file is about 60 MB
-# A TOML scene file: the parser takes about 25 times a file's size in memory (a 240 MB file:
-# 6 GB, then MemoryError), and a scene names its meshes' files rather than holding them.
+# A scene file, TOML or coursework: the TOML parser takes about 25 times a file's size in memory
+# (a 240 MB file: 6 GB, then MemoryError), a coursework file split into words about 15 times, and a
+# scene names its meshes' files rather than holding them.
 MAX_SCENE_FILE_BYTES = 16 * 2**20
 MAX_DOME_LEGS = 64
 _lifted = False

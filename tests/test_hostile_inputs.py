@@ -75,12 +75,29 @@ def test_a_lattice_of_huge_resolution_names_its_cell_count_unwrapped(here, scene
     assert 0.1 * resolution**3 < cells < 10 * resolution**3
 
 
+def test_a_count_past_any_float_is_still_refused_with_a_message():
+    """From Python, cells of 1e200 each made an integer that no float holds: the memory in the
+    message raised OverflowError."""
+    from assets.generators import box
+    from fem.errors import SizeLimitError
+    with pytest.raises(SizeLimitError, match=r"5\.00e\+600 tets is more than the limit .* about 2\.75e\+594 GB"):
+        box(cells=(10**200, 10**200, 10**200))
+
+
 def test_a_scene_file_over_the_limit_is_refused_before_parsing_and_says_the_limit(here):
     """A 240 MB TOML took 6 GB and three minutes to fail; 17 MB is refused before it is read."""
     (here / "big.toml").write_text(f'name = "{"a" * 17 * 2**20}"\n')
     code, _, err = run("simulate", "big.toml", "--steps", "1")
     assert code == 2
     one_error_line(err, "big.toml: a file of 17 MB is more than the limit of 16 MB", "--allow-large")
+
+
+def test_a_coursework_scene_file_over_the_scene_limit_is_refused(here):
+    """Split into words, a coursework file takes about 15 times its size: 256 MB would be 4 GB."""
+    (here / "big-scene.txt").write_text("1\ntet.mesh 100 200 0.1 0 0 0 0 1 0 0 0\n" + "12345 " * 3 * 2**20)
+    code, _, err = run("simulate", "big-scene.txt", "--steps", "1")
+    assert code == 2
+    one_error_line(err, "big-scene.txt: a file of 18 MB is more than the limit of 16 MB")
 
 
 # ---------------------------------------------------------------- meshes with no shape
@@ -271,11 +288,3 @@ def test_a_non_ascii_scene_name_on_an_ascii_terminal_is_one_error_line(here):
     assert run_.returncode == 2
     one_error_line(run_.stderr, "\\xe9pcot: no such scene file or built-in scene", "did you mean 'epcot'?")
 
-
-def test_a_count_past_any_float_is_still_refused_with_a_message():
-    """From Python, cells of 1e200 each made an integer that no float holds: the memory in the
-    message raised OverflowError."""
-    from assets.generators import box
-    from fem.errors import SizeLimitError
-    with pytest.raises(SizeLimitError, match=r"5\.00e\+600 tets is more than the limit .* about 2\.75e\+594 GB"):
-        box(cells=(10**200, 10**200, 10**200))
