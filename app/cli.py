@@ -341,6 +341,10 @@ def dispatch(args, parser):
         print("\nor a file: a .toml scene, a coursework *-scene.txt, a surface mesh (.obj .stl .ply .off) "
               "or a tet mesh (.mesh .msh .vtk .vtu)")
         return 0
+    try:
+        os.getcwd()                 # Taichi's start and every relative path need it
+    except FileNotFoundError:
+        raise FemError("the current folder was removed; change to one that exists") from None
     if args.command == "export" and args.out is None:
         args.out = str(fresh_folder(Path(args.scene).stem))
     for attribute, option, kind in OUTPUTS.get(args.command, []):

@@ -288,3 +288,13 @@ def test_a_non_ascii_scene_name_on_an_ascii_terminal_is_one_error_line(here):
     assert run_.returncode == 2
     one_error_line(run_.stderr, "\\xe9pcot: no such scene file or built-in scene", "did you mean 'epcot'?")
 
+
+
+def test_a_run_started_in_a_removed_folder_is_one_error_line(here):
+    """Taichi's start asks for the current folder: a FileNotFoundError traceback."""
+    (here / "gone").mkdir()
+    run_ = subprocess.run(["bash", "-c", f'cd gone && rmdir ../gone && exec "{sys.executable}" '
+                                         f'"{ROOT / "main.py"}" simulate ../S.toml --steps 1'],
+                          cwd=here, capture_output=True, text=True, timeout=600)
+    assert run_.returncode == 2
+    one_error_line(run_.stderr, "the current folder was removed; change to one that exists")
