@@ -130,6 +130,19 @@ def test_a_truncated_cache_entry_of_a_generated_mesh_is_rebuilt(here):
     code, out, err = run("simulate", "epcot", "--steps", "1")
     assert code == 0, err
     assert "1 steps to t =" in out
+    assert entry.stat().st_size > 1000                 # rebuilt in place
+
+
+def test_a_cache_entry_that_is_a_folder_is_built_around_and_leaves_nothing(here):
+    """Each run left a temporary file of the mesh in the cache, which it could not rename."""
+    assert run("simulate", "epcot", "--steps", "1")[0] == 0
+    [entry] = (here / "cache").glob("generated-*.npz")
+    entry.unlink()
+    entry.mkdir()
+    code, out, err = run("simulate", "epcot", "--steps", "1")
+    assert code == 0, err
+    assert "warning: could not cache the tet mesh" in err and "1 steps to t =" in out
+    assert [path.name for path in (here / "cache").iterdir()] == [entry.name]
 
 
 # ---------------------------------------------------------------- an export whose folder goes away
