@@ -162,7 +162,7 @@ def prepare_mesh(vertices, tets, source, *, tet_lines=None):
     if len(degenerate):
         t = degenerate[0]
         raise FemError(f"{where(t)} (vertices {tets[t].tolist()}) has near-zero volume "
-                       f"{volumes[t]:.3g}; {len(degenerate)} such tet(s) in all")
+                       f"{volumes[t]:.3g} for a mesh {diagonal:.3g} across; {len(degenerate)} such tet(s) in all")
 
     negative = volumes < 0
     tets[negative, :2] = tets[negative, 1::-1]  # swapping two vertices flips the sign
