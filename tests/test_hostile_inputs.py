@@ -256,6 +256,17 @@ def test_a_coursework_quaternion_of_1e300_rotates_the_body(here):
     assert np.abs(placed("1 1 0 0") - placed("1 0 0 0")).max() > 0.1
 
 
+
+def test_a_scene_quaternion_of_1e_300_rotates_the_body(here):
+    """Its norm underflowed to 0, and the quaternion was refused as zero."""
+    from scenes import load_scene
+
+    def placed(rotation):
+        return load_scene("S.toml", overrides=[f"body.0.rotation={rotation}"]).bodies[0].mesh.vertices
+
+    np.testing.assert_allclose(placed("[1e-300, 1e-300, 0, 0]"), placed("[1, 1, 0, 0]"), atol=1e-12)
+    assert np.abs(placed("[1, 1, 0, 0]") - placed("[1, 0, 0, 0]")).max() > 0.1
+
 # ---------------------------------------------------------------- did you mean
 
 @pytest.mark.parametrize("argv, hint", [(["simulat", "epcot"], "no command 'simulat'; did you mean simulate?"),
