@@ -322,3 +322,15 @@ def test_a_run_started_in_a_removed_folder_is_one_error_line(here):
                           cwd=here, capture_output=True, text=True, timeout=600)
     assert run_.returncode == 2
     one_error_line(run_.stderr, "the current folder was removed; change to one that exists")
+
+
+def test_no_cache_folder_taichi_can_write_is_one_error_line(here):
+    """With neither the asked folder nor the temporary one usable, Taichi ran without a cache and
+    crashed at exit (SIGSEGV, exit 139) after the run's output."""
+    (here / "tmp").mkdir()
+    (here / "tmp" / f"softfem-taichi-cache-{os.getuid()}").write_text("not a folder")
+    run_ = main_py(here, "simulate", "S.toml", "--steps", "1", env={"HOME": "/dev/null",
+                                                                    "TMPDIR": str(here / "tmp")})
+    assert run_.returncode == 2
+    one_error_line(run_.stderr, "kernel cache folder /dev/null/.cache/taichi/ticache cannot be written, nor",
+                   "set TI_OFFLINE_CACHE_FILE_PATH to a folder you can write")
