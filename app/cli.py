@@ -86,16 +86,22 @@ class Parser(argparse.ArgumentParser):
         sys.exit(EXIT_BAD_INPUT)
 
     def option_hint(self, message) -> str:
-        """'; did you mean --steps?' when argparse did not recognise a mistyped option (`--stpes`).
-        The top-level parser reports a command's unknown options, so every command's are candidates."""
+        """'; did you mean --steps?' when argparse did not recognise a mistyped option (`--stpes`),
+        or '; --frames is an option of export' for another command's option. The top-level parser
+        reports a command's unknown options, so the command is looked for in `self.argv`."""
+        commands = getattr(self, "commands", {})
+        given = [commands[word] for word in getattr(self, "argv", []) if word in commands][:1]
         options = set(self._option_string_actions)
-        for command in getattr(self, "commands", {}).values():
+        for command in given or commands.values():
             options |= set(command._option_string_actions)
         unknown = message.removeprefix("unrecognized arguments: ").split() \
             if message.startswith("unrecognized arguments: ") else []
-        for word in unknown:
-            close = difflib.get_close_matches(word.split("=")[0], sorted(options), n=1)
-            if word.startswith("--") and close:
+        for word in (word.split("=")[0] for word in unknown if word.startswith("--")):
+            owners = [name for name, command in commands.items() if word in command._option_string_actions]
+            if owners:
+                return f"; {word} is an option of {' and '.join(owners)}"
+            close = difflib.get_close_matches(word, sorted(options), n=1)
+            if close:
                 return f"; did you mean {close[0]}?"
         return ""
 
@@ -387,6 +393,7 @@ def main(argv=None) -> int:
         example = " ".join(argv if not argv[0].startswith("-") else [DEFAULT_SCENE, *argv])
         parser.error(f"no command given; commands: {', '.join(commands)}; "
                      f"e.g. `{parser.prog} {command_taking(argv, commands)} {example}`")
+    parser.argv = argv                  # for option_hint
     args = parser.parse_args(argv)
     if args.command is None:
         parser.error(f"no command given; commands: {', '.join(commands)}")

@@ -272,8 +272,12 @@ def test_a_scene_quaternion_of_1e_300_rotates_the_body(here):
 @pytest.mark.parametrize("argv, hint", [(["simulat", "epcot"], "no command 'simulat'; did you mean simulate?"),
                                         (["exprot"], "no command 'exprot'; did you mean export?"),
                                         (["help", "simulat"], "no command 'simulat'; did you mean simulate?"),
-                                        (["simulate", "epcot", "--stpes=3"], "--stpes=3; did you mean --steps?")])
+                                        (["simulate", "epcot", "--stpes=3"], "--stpes=3; did you mean --steps?"),
+                                        (["simulate", "epcot", "--fps", "3"], "--fps 3; --fps is an option of export"),
+                                        (["simulate", "epcot", "--quick"], "--quick is an option of bench and figures")])
 def test_a_mistyped_command_or_option_gets_a_did_you_mean(here, argv, hint):
+    """Another command's option was answered 'did you mean' itself (--frames), or a look-alike
+    (--fps: 'did you mean --steps?')."""
     code, _, err = run(*argv)
     assert code == 2
     one_error_line(err, hint)
