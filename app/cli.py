@@ -88,16 +88,22 @@ class Parser(argparse.ArgumentParser):
         sys.exit(EXIT_BAD_INPUT)
 
     def option_hint(self, message) -> str:
-        """'; did you mean --steps?' when argparse did not recognise a mistyped option (`--stpes`).
-        The top-level parser reports a command's unknown options, so every command's are candidates."""
+        """'; did you mean --steps?' when argparse did not recognise a mistyped option (`--stpes`),
+        or '; --frames is an option of export' for another command's option. The top-level parser
+        reports a command's unknown options, so the command is looked for in `self.argv`."""
+        commands = getattr(self, "commands", {})
+        given = [commands[word] for word in getattr(self, "argv", []) if word in commands][:1]
         options = set(self._option_string_actions)
-        for command in getattr(self, "commands", {}).values():
+        for command in given or commands.values():
             options |= set(command._option_string_actions)
         unknown = message.removeprefix("unrecognized arguments: ").split() \
             if message.startswith("unrecognized arguments: ") else []
-        for word in unknown:
-            close = difflib.get_close_matches(word.split("=")[0], sorted(options), n=1)
-            if word.startswith("--") and close:
+        for word in (word.split("=")[0] for word in unknown if word.startswith("--")):
+            owners = [name for name, command in commands.items() if word in command._option_string_actions]
+            if owners:
+                return f"; {word} is an option of {' and '.join(owners)}"
+            close = difflib.get_close_matches(word, sorted(options), n=1)
+            if close:
                 return f"; did you mean {close[0]}?"
         return ""
 
@@ -350,6 +356,10 @@ def dispatch(args, parser):
         print("\nor a file: a .toml scene, a coursework *-scene.txt, a surface mesh (.obj .stl .ply .off) "
               "or a tet mesh (.mesh .msh .vtk .vtu)")
         return 0
+    try:
+        os.getcwd()                 # Taichi's start and every relative path need it
+    except FileNotFoundError:
+        raise FemError("the current folder was removed; change to one that exists") from None
     if args.command == "export" and args.out is None:
         args.out = str(fresh_folder(Path(args.scene).stem))
     for attribute, option, kind in OUTPUTS.get(args.command, []):
@@ -392,6 +402,7 @@ def main(argv=None) -> int:
         example = " ".join(argv if not argv[0].startswith("-") else [DEFAULT_SCENE, *argv])
         parser.error(f"no command given; commands: {', '.join(commands)}; "
                      f"e.g. `{parser.prog} {command_taking(argv, commands)} {example}`")
+    parser.argv = argv                  # for option_hint
     try:
         args = parser.parse_args(argv)
     except BrokenPipeError:             # --help to a reader that went away

@@ -67,7 +67,7 @@ def check_output(path, option, kind):
 
 
 @contextlib.contextmanager
-def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
+def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True, make_folder=True):
     """Open a temporary file beside `path`; on success it replaces `path`, on error it vanishes.
 
     keep_if_interrupted: for a stream of complete records (one JSON row per line,
@@ -76,13 +76,14 @@ def atomic_open(path, mode="w", keep_if_interrupted=False, overwrite=True):
     a full disk the complete rows are kept as well (FemError saying so).
     overwrite: False puts the file in place only if no other run created `path` meanwhile
     (app.outputs.put_in_place). A special file (/dev/null, a FIFO) is opened and written
-    directly, never replaced.
+    directly, never replaced. make_folder: False for a folder that must still be the one the
+    run made (an export's frames): gone, it is not made again.
     """
     path = Path(path)
     if outputs.is_special(path):
         yield from _stream(path, mode)
         return
-    if not path.parent.is_dir():
+    if make_folder and not path.parent.is_dir():
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:

@@ -299,3 +299,14 @@ class FolderLock:
     def __exit__(self, *exc):
         os.close(self.descriptor)
         return False
+
+    def removed(self) -> bool:
+        """True when the locked folder is no longer at its path (`rm -r out/`, or the working
+        folder of a relative path removed; maybe made again since): writing on would make a
+        new folder that holds only the later files."""
+        locked = os.fstat(self.descriptor)
+        try:
+            now = os.stat(self.folder)
+        except OSError:
+            return True
+        return (now.st_dev, now.st_ino) != (locked.st_dev, locked.st_ino)

@@ -83,7 +83,11 @@ class VideoWriter:
 
     def failed(self, error: OSError | None = None) -> VideoFailed:
         """The error for a video the encoder could not finish, with the likeliest reason."""
-        free = shutil.disk_usage(self.path.parent).free
+        try:
+            free = shutil.disk_usage(self.path.parent).free
+        except FileNotFoundError:
+            return VideoFailed(f"{self.path}: its folder was removed while this run wrote into it; "
+                               "the video was not written")
         if error is not None and error.errno in outputs.WRITE_ERRORS or free < FULL_DISK_BYTES:
             reason = "no space left on device"
         else:

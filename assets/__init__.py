@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fem.errors import FemError
+from fem.limits import MAX_INTEGER
 from fem.mesh import MESHIO_READ_EXTENSIONS, TetMesh, read_tet_mesh
 
 from assets.bunny import bunny
@@ -157,6 +158,9 @@ def _typed(value, default, key):
     if isinstance(default, int):
         if not float(value).is_integer():
             raise FemError(f"{key} must be an integer, got {value!r}")
+        if abs(value) > MAX_INTEGER:        # cells = [1e200, 1, 1]: a count with 200 digits
+            raise FemError(f"{key} must be an integer between -{MAX_INTEGER:,} and {MAX_INTEGER:,} (the "
+                           f"engine counts in 32-bit integers), got {value!r}")
         return int(value)
     return float(value)
 

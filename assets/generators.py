@@ -12,7 +12,7 @@ import numpy as np
 
 from assets.lattice import implicit_mesh, lattice_mesh
 from fem.errors import FemError
-from fem.limits import MAX_DOME_LEGS, check_size
+from fem.limits import MAX_DOME_LEGS, amount, check_size
 from fem.mesh import check_tet_count
 
 
@@ -28,7 +28,7 @@ def box(size=(1.0, 1.0, 1.0), cells=(4, 4, 4), split=5):
     _require(all(c >= 1 for c in cells), f"cells must be >= 1, got {cells}")
     source = f"box(size={size}, cells={cells}, split={split})"
     count = int(np.prod(cells, dtype=object)) * split          # before the lattice is allocated
-    check_tet_count(count, source, f"{count:,} tets")
+    check_tet_count(count, source, f"{amount(count)} tets")
     spacing = np.array(size) / np.array(cells)
     return lattice_mesh(np.ones(cells, dtype=bool), -0.5 * np.array(size), spacing, split,
                         source)
@@ -50,7 +50,7 @@ def dome(radius=1.0, subdivisions=2, legs=3, leg_length=0.8, leg_radius=0.15, re
     _require(isinstance(subdivisions, int) and 0 <= subdivisions <= 5,
              f"subdivisions must be an integer 0..5, got {subdivisions!r}")
     _require(isinstance(legs, int) and legs >= 0, f"legs must be an integer >= 0, got {legs!r}")
-    check_size(legs, MAX_DOME_LEGS, "dome", f"{legs:,} legs")
+    check_size(legs, MAX_DOME_LEGS, "dome", f"{amount(legs)} legs")
     _require(leg_length > 0, f"leg_length must be > 0, got {leg_length!r}")
     _require(0 < leg_radius < radius, f"leg_radius must be in (0, radius), got {leg_radius!r}")
     _require(isinstance(resolution, int) and resolution >= 4,

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from fem.limits import amount
 from fem.mesh import (boundary_faces, check_tet_count, dihedral_angles, prepare_mesh,
                       signed_volumes)
 
@@ -74,7 +75,7 @@ def implicit_mesh(sdf, lower, upper, spacing, source, min_dihedral_deg=12.0):
     counts = [math.ceil(n) for n in (np.asarray(upper) + spacing - lower) / spacing]
     lattice = math.prod(counts)
     # Before the lattice is allocated (lattice_mesh counts the cells the shape fills, 5 tets each).
-    check_tet_count(lattice, source, f"a lattice of {lattice:,} cells (at least one tet each)")
+    check_tet_count(lattice, source, f"a lattice of {amount(lattice)} cells (at least one tet each)")
     centres = lower + (np.argwhere(np.ones(counts, dtype=bool)) + 0.5) * spacing
     filled = manifold_cells(sdf(centres).reshape(counts) < 0)
     mesh = lattice_mesh(filled, lower, [spacing] * 3, 5, source)

@@ -6,6 +6,7 @@ load it in milliseconds. The cache lives outside the repository: a mesh made
 from someone else's surface is never committed.
 """
 
+import contextlib
 import hashlib
 import importlib.util
 import os
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from fem.errors import FemError, excerpt
-from fem.limits import check_file_size
+from fem.limits import amount, check_file_size
 from fem.mesh import check_tet_count, prepare_mesh
 
 # Bump when the output for the same input changes (tool, options, file layout),
@@ -73,7 +74,7 @@ def tetrahedralize_surface(path, edge_length=0.05, progress=True):
     last_cache_hit = mesh is not None
     if mesh is None:
         estimate = round(TETS_AT_5_PERCENT * (0.05 / edge_length) ** 3)
-        check_tet_count(estimate, path, f"edge_length {edge_length} gives about {estimate:,} tets")
+        check_tet_count(estimate, path, f"edge_length {edge_length} gives about {amount(estimate)} tets")
         start = time.perf_counter()
         vertices, faces = load_surface(path)
         if progress:
@@ -130,16 +131,21 @@ def read_cache_entry(cached, *names):
 def write_cache_entry(cached, arrays, **more):
     """Write the cache entry atomically, with the checksum of its vertices and tets; a cache
     that cannot be written is only a warning."""
+    temporary = None
     try:
         cached.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=cached.parent, suffix=".tmp",
                                          delete=False) as file:
+            temporary = file.name
             np.savez(file, vertices=arrays[0], tets=arrays[1], checksum=np.array(checksum(*arrays[:2])),
                      **more)
-        os.replace(file.name, cached)
+        os.replace(temporary, cached)
     except OSError as error:
         print(f"warning: could not cache the tet mesh in {cached.parent}: {error}",
               file=sys.stderr)
+        if temporary is not None:       # a full disk, or a folder where the entry goes: no leftovers
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
 
 
 def load_surface(path):

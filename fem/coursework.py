@@ -25,7 +25,7 @@ def read_coursework_scene(path):
     path = Path(path)
     if not path.is_file():
         raise FemError(f"{path}: no such scene file")
-    limits.check_file_size(path)
+    limits.check_file_size(path, limits.MAX_SCENE_FILE_BYTES)
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as e:

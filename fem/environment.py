@@ -7,11 +7,12 @@ and an offline cache folder it cannot write crashes the process at exit (SIGSEGV
 after the run's output. So, before taichi is imported, `prepare` gives HOME the
 user's home folder when it is unset and sets aside the TI_* values Taichi cannot
 use; `fem.init` then raises a FemError naming them, and starts Taichi with a cache
-folder checked here (`offline_cache_folder`), or with no cache.
+folder checked here (`offline_cache_folder`), or raises one saying that there is none.
 """
 
 import os
 import pwd
+import re
 import tempfile
 
 LOG_LEVELS = ("trace", "debug", "info", "warn", "error", "critical", "off")
@@ -25,10 +26,11 @@ def prepare():
     if not os.environ.get("HOME"):
         os.environ["HOME"] = home_folder()
     level = os.environ.get("TI_LOG_LEVEL")
-    if level and level.lower() not in LOG_LEVELS:
+    if level and level not in LOG_LEVELS:          # Taichi takes them in lower case only
         set_aside("TI_LOG_LEVEL", f"not a Taichi log level ({', '.join(LOG_LEVELS)})")
     threads = os.environ.get("TI_CPU_MAX_NUM_THREADS")
-    if threads and not (threads.strip().isdigit() and 1 <= int(threads) <= MAX_THREADS):
+    # ASCII digits: Python's isdigit() also takes '²', which int() and Taichi do not.
+    if threads and not (re.fullmatch(r"\s*[0-9]+\s*", threads) and 1 <= int(threads) <= MAX_THREADS):
         set_aside("TI_CPU_MAX_NUM_THREADS", f"must be a whole number of threads from 1 to {MAX_THREADS}")
 
 
@@ -54,17 +56,22 @@ def problems() -> list[str]:
 def offline_cache_folder() -> tuple[str | None, str]:
     """(folder, note): the folder for Taichi's offline cache, and a note for the user when it is
     not the one asked for. Asked for: TI_OFFLINE_CACHE_FILE_PATH, else Taichi's own default
-    under XDG_CACHE_HOME or ~/.cache; where no file can be made there, a folder of this user's
-    in the temporary folder (Taichi, told to keep no cache, still crashes at exit on a folder
-    it cannot write); None if neither can be written."""
-    asked = os.environ.pop("TI_OFFLINE_CACHE_FILE_PATH", None) or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.environ["HOME"], ".cache"), "taichi", "ticache")
+    under XDG_CACHE_HOME or ~/.cache; where no file can be made there, Taichi's default, then a
+    folder of this user's in the temporary folder; None, and why, if none can be written:
+    Taichi would crash at exit (SIGSEGV), even told to keep no cache."""
+    default = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.environ["HOME"], ".cache"),
+                           "taichi", "ticache")
+    asked = os.environ.pop("TI_OFFLINE_CACHE_FILE_PATH", None) or default
+    fallback = os.path.join(tempfile.gettempdir(), f"softfem-taichi-cache-{os.getuid()}")
     if writable(asked):
         return asked, ""
-    fallback = os.path.join(tempfile.gettempdir(), f"softfem-taichi-cache-{os.getuid()}")
-    if writable(fallback) and os.stat(fallback).st_uid == os.getuid():
-        return fallback, f"Taichi's kernel cache folder {asked} cannot be written; using {fallback}"
-    return None, f"Taichi's kernel cache folder {asked} cannot be written; kernels compile on every start"
+    unwritable = f"Taichi's kernel cache folder {asked} cannot be written"
+    if default != asked and writable(default):
+        return default, f"{unwritable}; using {default}"
+    if writable(fallback) and os.stat(fallback).st_uid == os.getuid():     # not another user's
+        return fallback, f"{unwritable}; using {fallback}"
+    return None, (f"{unwritable}, nor {fallback}, and Taichi crashes without one; set "
+                  "TI_OFFLINE_CACHE_FILE_PATH to a folder you can write")
 
 
 def writable(folder: str) -> bool:

@@ -29,8 +29,9 @@ MAX_BODIES = 256             # the coarse preconditioner grows with the square o
 BYTES_PER_TET = {"f32": 550, "f64": 850}
 MEMORY_SHARE = 0.5           # of the backend's memory, for the tets of one scene: the rest is the machine's
 MAX_FILE_BYTES = 256 * 2**20  # a mesh file; a million-tet MEDIT file is about 60 MB
-# A TOML scene file: the parser takes about 25 times a file's size in memory (a 240 MB file:
-# 6 GB, then MemoryError), and a scene names its meshes' files rather than holding them.
+# A scene file, TOML or coursework: the TOML parser takes about 25 times a file's size in memory
+# (a 240 MB file: 6 GB, then MemoryError), a coursework file split into words about 15 times, and a
+# scene names its meshes' files rather than holding them.
 MAX_SCENE_FILE_BYTES = 16 * 2**20
 MAX_DOME_LEGS = 64
 _lifted = False
@@ -75,11 +76,11 @@ def check_file_size(path, limit=None):
 
 
 def check_body_count(count, where):
-    check_size(count, MAX_BODIES, where, f"{count:,} bodies")
+    check_size(count, MAX_BODIES, where, f"{amount(count)} bodies")
 
 
 def check_scene_tets(count, where):
-    check_tets(count, where, f"{count:,} tets in all bodies together", "in a scene")
+    check_tets(count, where, f"{amount(count)} tets in all bodies together", "in a scene")
 
 
 def check_tets(count, where, what, scope, limit=None):
@@ -135,7 +136,21 @@ def cuda_memory():
 
 
 def gigabytes(count):
-    return f"{count / 1e9:,.1f} GB" if count >= 1e8 else f"{count / 1e6:,.0f} MB"
+    """`count` bytes for a message, in MB or GB; of any size (amount())."""
+    if count < 10**8:
+        return f"{count / 1e6:,.0f} MB"
+    return f"{count / 1e9:,.1f} GB" if count < 10**15 else f"{amount(count // 10**9)} GB"
+
+
+def amount(count) -> str:
+    """A count for a message: "22,978,239", or from 1e15 on "1.33e+60", cut to three digits.
+    A count asked for by a resolution of 1e20 has 60 digits, unreadable, and past 1e308 a
+    Python integer has no float to print it with."""
+    count = int(count)
+    if count < 10**15:
+        return f"{count:,}"
+    digits = str(count)
+    return f"{digits[0]}.{digits[1:3]}e+{len(digits) - 1}"
 
 
 def check_range(value, low, high, where, unit=""):

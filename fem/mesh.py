@@ -89,7 +89,7 @@ def check_tet_count(count, source, what=None):
     memory's limit (fem.limits.check_tets); --allow-large (limits.lifted) lifts it.
 
     what: how the count came about, for the message (default "{count} tets")."""
-    limits.check_tets(count, source, what or f"{count:,} tets", "per mesh", MAX_TETS)
+    limits.check_tets(count, source, what or f"{limits.amount(count)} tets", "per mesh", MAX_TETS)
 
 
 def prepare_mesh(vertices, tets, source, *, tet_lines=None):
@@ -162,7 +162,7 @@ def prepare_mesh(vertices, tets, source, *, tet_lines=None):
     if len(degenerate):
         t = degenerate[0]
         raise FemError(f"{where(t)} (vertices {tets[t].tolist()}) has near-zero volume "
-                       f"{volumes[t]:.3g}; {len(degenerate)} such tet(s) in all")
+                       f"{volumes[t]:.3g} for a mesh {diagonal:.3g} across; {len(degenerate)} such tet(s) in all")
 
     negative = volumes < 0
     tets[negative, :2] = tets[negative, 1::-1]  # swapping two vertices flips the sign

@@ -49,15 +49,15 @@ def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False)
     fp = ti.f32 if precision == "f32" else ti.f64
     ignore_taichi_arch_variable(arch)
     cache, note = environment.offline_cache_folder()
+    if cache is None:
+        raise FemError(note)
     if note:
         print(f"warning: {note}", file=sys.stderr)
     # Taichi prints a banner on stdout; keep stdout for our own output
-    # Without a cache Taichi's default path stays (an empty one fails an assertion at exit).
-    where = {"offline_cache_file_path": cache} if cache else {}
     with contextlib.redirect_stdout(io.StringIO()), taichi_variables_reported():
-        ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug, offline_cache=cache is not None,
-                offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, log_level=ti.ERROR, kernel_profiler=profile,
-                **where)
+        ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug, offline_cache=True,
+                offline_cache_file_path=cache, offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES,
+                log_level=ti.ERROR, kernel_profiler=profile)
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")

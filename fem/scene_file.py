@@ -185,7 +185,7 @@ def read_body(raw, index, path, build_mesh):
     if "rotation_axis_angle" in t:
         aa = t.get("rotation_axis_angle", "vec4")
         rotation = np.array(axis_angle_quaternion(aa[:3], aa[3]))
-    if not np.linalg.norm(rotation) > 0:
+    if not np.abs(rotation).max() > 0:          # not the norm: that of (1e-300, 0, 0, 0) underflows to 0
         raise FemError(f"{where}.rotation: quaternion must be non-zero")
     scale = t.get("scale", "float", 1.0)
     if not scale > 0:

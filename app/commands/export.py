@@ -128,14 +128,15 @@ def simulate_and_write(args, out: Path, video: Path | None, width: int, height: 
     view = View(sim, scene, args.compare, args.color, args.renderer, width, height)
 
     out.mkdir(parents=True, exist_ok=True)
-    with outputs.FolderLock(out):
+    with outputs.FolderLock(out) as lock:
         outputs.remove_stale_temporaries(out)
         refuse_overwrite(out, args.overwrite)      # again: another run may have written meanwhile
-        return write_frames(args, sim, scene, view, out, video, steps, fps)
+        return write_frames(args, sim, scene, view, lock, video, steps, fps)
 
 
-def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
-    """Step, render and write every frame (and the video) into the locked folder out."""
+def write_frames(args, sim, scene, view, lock, video, steps, fps) -> int:
+    """Step, render and write every frame (and the video) into the folder `lock` holds."""
+    out = lock.folder
     timings = {"step": [], "simulation": [], "rendering": [], "writing": []}
     steps_run = Tally()
     written = 0                 # complete PNG files
@@ -157,6 +158,8 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
                 # The PNG, the video's frame and the count move together: an interruption
                 # leaves as many frames in the video as PNG files.
                 with interrupts_deferred():
+                    if lock.removed():
+                        raise fem.FemError(frames_kept(lock, written))
                     write_png(out / FRAME_NAME.format(index), view.annotated(picture, lines),
                               f"kept the {index} complete frames before it")
                     written = index + 1
@@ -177,9 +180,10 @@ def write_frames(args, sim, scene, view, out, video, steps, fps) -> int:
         print(f"interrupted at frame {written} of {args.frames}: {kept}{also}{earlier}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except VideoFailed as error:
-        kept = f"kept the {written} complete frames in {out}" if written else "no frame was complete"
-        raise fem.FemError(f"{error}; {kept}") from None
+        raise fem.FemError(f"{error}; {frames_kept(lock, written)}") from None
     except fem.FemError as error:           # a frame could not be written: the video closed on the others
+        if lock.removed():                  # then what write_png says was kept went with the folder
+            error = frames_kept(lock, written)
         also = f"; {video} holds them ({writer.frames} frames)" if writer.placed else ""
         raise fem.FemError(f"{error}{also}") from None
     print(summary(timings, steps, view.renderer.name))
@@ -399,10 +403,18 @@ def write_png(path: Path, image: np.ndarray, kept: str = ""):
     """Save image (H, W, 3) uint8 as a PNG, under a temporary name until it is complete;
     a full disk is a FemError naming the frame and what was `kept`."""
     try:
-        with atomic_open(path, "wb") as f:
+        with atomic_open(path, "wb", make_folder=False) as f:     # a removed --out stays removed
             Image.fromarray(image).save(f, format="PNG")
     except fem.FemError as error:
         raise fem.FemError(f"{error}; {kept}" if kept else str(error)) from None
+
+
+def frames_kept(lock: outputs.FolderLock, written: int) -> str:
+    """What is left of the `written` complete frames in the folder `lock` holds, for a message."""
+    if lock.removed():
+        return (f"--out {lock.folder} was removed while this run wrote into it; the {written} frames "
+                "written before went with it")
+    return f"kept the {written} complete frames in {lock.folder}" if written else "no frame was complete"
 
 
 def older_frames(folder: Path, count: int) -> list[str]:
