@@ -76,9 +76,9 @@ def test_the_line_search_never_accepts_an_increase_of_E(f64):
         paths[-1].append(last[0])           # the trial just evaluated is the one accepted
         return settle(*args)
 
-    def logged_step(*args):
+    def logged_step(*args, **kwargs):
         paths.append([])
-        out = step(*args)
+        out = step(*args, **kwargs)
         slack.append(newton.body_resolution.to_numpy()[:1])
         return out
 
