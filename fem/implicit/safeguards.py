@@ -62,8 +62,9 @@ LIFT = 0.1
 # round-off: scaling a blown-up step's deformation (1.5e10 J made from 0.67 J) back by 1 - lam
 # left 2e3 J where the formula said 0 (the sliver hard case, f32, dt 0.5 s)
 FAILED = 0.5
-# A trimmed body whose elastic energy at the start was above this share of its kinetic energy is
-# strained (`strained`): its step is taken again by backward Euler, not rigidly
+# A trimmed body whose elastic energy at the start was above this share of the size of its energy's
+# terms (kinetic, elastic, |gravitational|) is strained (`strained`): its step is taken again by
+# backward Euler, not rigidly
 STRAINED = 1e-3
 FAR = 1e30           # m: the clearance of a body when there is no ground
 THREE_I32 = ti.types.vector(3, ti.i32)
@@ -138,14 +139,16 @@ class Safeguards(Fallback):
     @ti.kernel
     def strained(self) -> ti.i32:
         """The bodies trimmed this step that began it strained: holding elastic energy above
-        STRAINED of their kinetic energy (an inverted start; a strained body spinning at dt 0.5 s),
+        STRAINED of the size of their energy's terms (an inverted start; a strained body spinning
+        at dt 0.5 s),
         where a rigid step would keep that strain for as long as the solve keeps failing (the
         solver takes the step again by backward Euler). A stiff body that moves as one (spinning
-        or falling at E 1e10: strains of round-off, 1e-8 of its kinetic energy) is not strained."""
+        or falling at E 1e10: strains of round-off, 1e-8 of its energy) is not strained."""
         count = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            if self.body_fallback[self.island(b)] and self.body_elastic_before[b] > STRAINED * self.body_kinetic_before[b]:
+            f = self.island(b)
+            if self.body_fallback[f] and self.body_elastic_before[b] > STRAINED * self.body_total_size[BEFORE, f]:
                 count += 1
         return count
 

@@ -47,7 +47,7 @@ class StepInfo:
     rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
     retried: bodies whose second-order solve failed (they would have been trimmed), so that the
         step was taken again by backward Euler, whose name `integrator` then gives: where one of
-        them began the step holding more elastic than kinetic energy (`Safeguards.strained`).
+        them began the step strained (`Safeguards.strained`).
     """
 
     finite: bool
