@@ -43,6 +43,7 @@ Fields (bodies of the capacity; energies summed in float64):
     body_clearance (bodies,)     m: its lowest vertex's height above the ground at the step's end
     body_kinetic_before (bodies,)  J: its kinetic energy BEFORE the step
     body_elastic_before (bodies,)  J: its elastic energy BEFORE the step (`strained`)
+    body_stiffness (bodies,)     J: sum of mu V over its tets (`strained`)
     body_moving (bodies,)        J: its kinetic energy (`rigid_motion`)
 """
 
@@ -66,6 +67,7 @@ FAILED = 0.5
 # terms (kinetic, elastic, |gravitational|) is strained (`strained`): its step is taken again by
 # backward Euler, not rigidly
 STRAINED = 1e-3
+STRAINED_STRAIN = 1e-3
 FAR = 1e30           # m: the clearance of a body when there is no ground
 THREE_I32 = ti.types.vector(3, ti.i32)
 
@@ -104,6 +106,7 @@ class Safeguards(Fallback):
         self.body_clearance = ti.field(float, nb)
         self.body_kinetic_before = ti.field(ti.f64, nb)
         self.body_elastic_before = ti.field(ti.f64, nb)
+        self.body_stiffness = ti.field(ti.f64, nb)
         self.forget_band()
 
     def forget_band(self):
@@ -139,16 +142,25 @@ class Safeguards(Fallback):
     @ti.kernel
     def strained(self) -> ti.i32:
         """The bodies trimmed this step that began it strained: holding elastic energy above
-        STRAINED of the size of their energy's terms (an inverted start; a strained body spinning
-        at dt 0.5 s),
-        where a rigid step would keep that strain for as long as the solve keeps failing (the
-        solver takes the step again by backward Euler). A stiff body that moves as one (spinning
-        or falling at E 1e10: strains of round-off, 1e-8 of its energy) is not strained."""
+        STRAINED of the size of their energy's terms, and above that of a strain of
+        STRAINED_STRAIN everywhere (mu V STRAINED_STRAIN^2): an inverted start, a strained body
+        spinning at dt 0.5 s. A rigid step would keep that strain for as long as the solve keeps
+        failing; the solver takes the step again by backward Euler. A stiff body that moves as
+        one (spinning or falling at E 1e10: strains of round-off, 1e-8 of its energy) and a body
+        at rest with round-off's strain energy (1e-9 J) are not strained."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_stiffness[b] = 0.0
+        ti.loop_config(serialize=self.serial_tets)
+        for e in range(self.model.tet_count[None]):
+            b = self.model.tet_body[e]
+            self.body_stiffness[b] += ti.cast(self.model.body_mu[b] * self.model.rest_volume[e], ti.f64)
         count = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            f = self.island(b)
-            if self.body_fallback[f] and self.body_elastic_before[b] > STRAINED * self.body_total_size[BEFORE, f]:
+            elastic = self.body_elastic_before[b]
+            if self.body_fallback[b] and elastic > STRAINED * self.body_total_size[BEFORE, b] \
+                    and elastic > STRAINED_STRAIN ** 2 * self.body_stiffness[b]:
                 count += 1
         return count
 
