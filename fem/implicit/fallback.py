@@ -10,6 +10,11 @@ from fem.runtime import has_f64_trigonometry
 
 BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
 STAY = 2                 # body_fallback: the trimmed body stays at x_n (`slowed`)
+# A trimmed body whose elastic energy at the start was above this share of the size of its energy's
+# terms (kinetic, elastic, |gravitational|), and above mu V STRAINED_STRAIN^2, is strained
+# (`strained`): its step is taken again by backward Euler, not rigidly
+STRAINED = 1e-3
+STRAINED_STRAIN = 1e-3
 
 
 @ti.data_oriented
@@ -112,6 +117,31 @@ class Fallback:
                 v[i] *= ti.cast(ti.abs(self.body_speed[b]), float)
                 if self.body_speed[b] < 0.0:
                     x[i] = x_n[i]
+
+    @ti.func
+    def strained(self):
+        """The bodies trimmed this step that began it strained: holding elastic energy above
+        STRAINED of the size of their energy's terms, and above that of a strain of
+        STRAINED_STRAIN everywhere (mu V STRAINED_STRAIN^2): an inverted start, a strained body
+        spinning at dt 0.5 s. A rigid step would keep that strain for as long as the solve keeps
+        failing; the solver takes the step again by backward Euler. A stiff body that moves as
+        one (spinning or falling at E 1e10: strains of round-off, 1e-8 of its energy) and a body
+        at rest with round-off's strain energy (1e-9 J) are not strained."""
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_stiffness[b] = 0.0
+        ti.loop_config(serialize=self.serial_tets)
+        for e in range(self.model.tet_count[None]):
+            b = self.model.tet_body[e]
+            self.body_stiffness[b] += ti.cast(self.model.body_mu[b] * self.model.rest_volume[e], ti.f64)
+        count = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            elastic = self.body_elastic_before[b]
+            if self.body_fallback[b] and elastic > STRAINED * self.body_total_size[BEFORE, b] \
+                    and elastic > STRAINED_STRAIN ** 2 * self.body_stiffness[b]:
+                count += 1
+        return count
 
     @ti.func
     def rigid_position(self, x_n: ti.template(), i, b):

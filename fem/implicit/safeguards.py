@@ -63,13 +63,8 @@ LIFT = 0.1
 # round-off: scaling a blown-up step's deformation (1.5e10 J made from 0.67 J) back by 1 - lam
 # left 2e3 J where the formula said 0 (the sliver hard case, f32, dt 0.5 s)
 FAILED = 0.5
-# A trimmed body whose elastic energy at the start was above this share of the size of its energy's
-# terms (kinetic, elastic, |gravitational|) is strained (`strained`): its step is taken again by
-# backward Euler, not rigidly
-STRAINED = 1e-3
-STRAINED_STRAIN = 1e-3
 FAR = 1e30           # m: the clearance of a body when there is no ground
-THREE_I32 = ti.types.vector(3, ti.i32)
+FOUR_I32 = ti.types.vector(4, ti.i32)
 
 
 @ti.data_oriented
@@ -116,9 +111,9 @@ class Safeguards(Fallback):
     @ti.kernel
     def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), v_n: ti.template(),
                    x: ti.template(), v: ti.template(), h: float, dt: float, momentum: ti.template(),
-                   energy: ti.template(), accel: ti.template(), keep: ti.template(), conserve: ti.i32) -> THREE_I32:
+                   energy: ti.template(), accel: ti.template(), keep: ti.template(), conserve: ti.i32) -> FOUR_I32:
         """The step's last checks on its iterate x, v, in one launch: returns (vertices not
-        finite, bodies trimmed, bodies that took a rigid step: the same). momentum: `restore_momentum`; energy: the total energy AFTER
+        finite, bodies trimmed, bodies that took a rigid step: the same, of those the `strained`). momentum: `restore_momentum`; energy: the total energy AFTER
         and `limit_energy` (conserve: to the energy BEFORE, both ways). keep: accel <- the step's
         acceleration (v - v^) / h, what the forces did, before the energy projection corrects
         anything (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller
@@ -132,37 +127,14 @@ class Safeguards(Fallback):
             for i in range(self.model.vertex_count[None]):
                 accel[i] = (v[i] - v0[i]) / h
         counts = ti.Vector([0, 0], ti.i32)
+        strained = 0
         if ti.static(energy):
             self.total_energy(x, v, AFTER, 1)
             counts = self.limit_energy(x, v, dt, conserve)
             if counts[1] > 0:
+                strained = self.strained()
                 self.fall_back(x_n, v_n, x, v, dt)
-        return ti.Vector([bad, counts[0], counts[1]], ti.i32)
-
-    @ti.kernel
-    def strained(self) -> ti.i32:
-        """The bodies trimmed this step that began it strained: holding elastic energy above
-        STRAINED of the size of their energy's terms, and above that of a strain of
-        STRAINED_STRAIN everywhere (mu V STRAINED_STRAIN^2): an inverted start, a strained body
-        spinning at dt 0.5 s. A rigid step would keep that strain for as long as the solve keeps
-        failing; the solver takes the step again by backward Euler. A stiff body that moves as
-        one (spinning or falling at E 1e10: strains of round-off, 1e-8 of its energy) and a body
-        at rest with round-off's strain energy (1e-9 J) are not strained."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_stiffness[b] = 0.0
-        ti.loop_config(serialize=self.serial_tets)
-        for e in range(self.model.tet_count[None]):
-            b = self.model.tet_body[e]
-            self.body_stiffness[b] += ti.cast(self.model.body_mu[b] * self.model.rest_volume[e], ti.f64)
-        count = 0
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            elastic = self.body_elastic_before[b]
-            if self.body_fallback[b] and elastic > STRAINED * self.body_total_size[BEFORE, b] \
-                    and elastic > STRAINED_STRAIN ** 2 * self.body_stiffness[b]:
-                count += 1
-        return count
+        return ti.Vector([bad, counts[0], counts[1], strained], ti.i32)
 
     @ti.func
     def check_finite(self, x: ti.template(), v: ti.template()):

@@ -195,11 +195,10 @@ class ImplicitSolver:
         trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
         accel = self.history.acceleration() if target.one_step else p.v0
         conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
-        bad, trimmed, rigid = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not contact,
+        bad, trimmed, rigid, strained = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not contact,
                                                          newton, accel, target.one_step, conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
-        if retry and rigid > 0 and newton and not contact and integrator != "backward-euler" \
-                and self.safeguards.strained():
+        if retry and strained > 0 and newton and not contact and integrator != "backward-euler":
             self.end_known = None                   # start again from x_n: its rotations anew
             again = self.step(state_in, state_out, dt, retry=False)
             return replace(again, retried=int(rigid), solve_ms=1e3 * (time.perf_counter() - start) - again.rotation_ms)
