@@ -124,7 +124,7 @@ class SolverSettings:
     step: str = "newton"                # "newton": minimise the incremental potential | "single": one solve
     integrator: str = "auto"            # "trapezoidal" (second order, undamped: Newmark's average acceleration) |
                                         # "bdf2" (second order, damps fast modes) | "backward-euler" (first
-                                        # order) | "auto": the trapezoidal rule, BDF2 with damping, a ground or contact
+                                        # order) | "auto": the trapezoidal rule, BDF2 where there is a ground
     rho_infinity: float | None = None   # the trapezoidal rule's numerical dissipation: a mode dt cannot
                                         # resolve is multiplied by -rho_infinity a step (1: none, the
                                         # conserving scheme; 0: backward Euler's); None: 1, or with

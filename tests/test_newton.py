@@ -150,7 +150,12 @@ def test_the_coursework_cylinder_at_rest_costs_no_solver_iterations(cggs):
     sim = fem.Simulation(load_scene(cggs / "cylinder-scene.txt"))
     infos = [sim.step() for _ in range(5)]
     fem.init("cpu", "f64")
-    assert [i["solver_iters"] for i in infos] == [0] * 5
+    # In f32 the trapezoidal rule's a_n, taken from the forces at the first step's start, carries
+    # their round-off into the second step's guess, which one CG iteration corrects (dropping
+    # a_n's elastic part below the round-off floor cost a stiff f32 bar 0.8 % of its fall):
+    # at most that one, and none from the third step on
+    iters = [i["solver_iters"] for i in infos]
+    assert sum(iters) <= 1 and iters[2:] == [0] * 3, iters
 
 
 def test_the_first_guess_extrapolates_the_last_steps_change(f64):

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -46,10 +47,15 @@ def test_coursework_scene_runs_in_both_methods(f32, cggs, name):
             assert sim.step()["finite"]
 
 
-def test_coursework_epcot_linear_inflates_and_corotational_keeps_volume(f32, cggs):
-    """The coursework's own measurement: at t = 2 s linear epcot is about 2x, corotational 1.000."""
+@pytest.mark.parametrize("integrator", ["backward-euler", "bdf2"])
+def test_coursework_epcot_linear_inflates_and_corotational_keeps_volume(f32, cggs, integrator):
+    """The coursework's own measurement: at t = 2 s linear epcot is about 2x, corotational 1.000.
+    The coursework's integrator, backward Euler, and BDF2 both give it (2.018 in f64, and 2.019
+    with backward Euler at dt 0.002 s). The default, the trapezoidal rule, keeps the overdamped
+    modes of the struck vertices ringing and gives 1.55 (README, "Robustness and numbers")."""
     scene = scenes.load_scene(cggs / "epcot-scene.txt")
     assert len(scene.initial) == 3            # the header says 3; the 4th line is never read
+    scene.solver = replace(scene.solver, integrator=integrator)
     ratios = {}
     for method in ("linear", "corotational"):
         sim = fem.Simulation(scene, method=method)
@@ -58,7 +64,7 @@ def test_coursework_epcot_linear_inflates_and_corotational_keeps_volume(f32, cgg
             sim.step()
             worst = max(worst, abs(sim.stats()["volume_ratio"][0] - 1))
         ratios[method] = (sim.stats()["volume_ratio"][0], worst)
-    assert 1.6 < ratios["linear"][0] < 2.6
+    assert 1.9 < ratios["linear"][0] < 2.1
     assert ratios["corotational"][1] < 0.01
 
 

@@ -133,10 +133,9 @@ def beaten_beyond_resolution(scene, row):
 
 def default_step(scene):
     """(integrator, step, tolerance) of the engine's default settings, fem.scene.SolverSettings(), on
-    this scene ("auto" picks by whether it is damped or has a ground; the benchmark has no contact)."""
+    this scene ("auto" picks by whether it has a ground)."""
     settings = SolverSettings()
-    dissipative = scene.get("ground", False) or scene.get("damped", False)
-    return chosen(settings.integrator, dissipative), settings.step, settings.tolerance
+    return chosen(settings.integrator, scene.get("ground", False)), settings.step, settings.tolerance
 
 
 def direct_comparison(scene):

@@ -227,8 +227,7 @@ def measure_scene(ref, plan, args, progress):
     progress.set_description(f"{ref}: preconditioners")
     preconditioners = compare_preconditioners(scene, plan.preconditioner_steps)
     out = {"name": ref, "description": scene.description, "tets": sim.model.n_tets,
-           "vertices": sim.model.n_vertices, "ground": scene.effects.ground is not None,
-           "damped": scene.effects.alpha > 0 or scene.effects.beta > 0, "dt": scene.solver.dt, "reference_dt": rows[0]["dt"],
+           "vertices": sim.model.n_vertices, "ground": scene.effects.ground is not None, "dt": scene.solver.dt, "reference_dt": rows[0]["dt"],
            "reference_difference": final_error(rows[1]), "twins_difference": twins,
            "reference_order": reference_order(final_error(rows[1]), twins),
            "checkpoints": times, "variants": rows, "preconditioners": preconditioners}

@@ -141,8 +141,7 @@ def preconditioner_note(sim):
 
 def integrator_note(sim):
     """"trapezoidal (auto)": the integrator the steps take, and whether "auto" chose it."""
-    switches = sim.solver.switches
-    integrator = chosen(sim.settings.integrator, sim.solver.effects.damped or switches.ground or switches.contact)
+    integrator = chosen(sim.settings.integrator, sim.solver.switches.ground)
     return integrator + (" (auto)" if sim.settings.integrator == "auto" else "")
 
 

@@ -29,14 +29,17 @@ takes a first-order step (a backward Euler start cost a falling body 0.5 g dt^2 
 one 2 % of its energy); a damped one starts with a backward Euler step (below). Sleeping bodies
 keep their place exactly.
 
-"auto", the default, is the trapezoidal rule, but BDF2 in a scene with damping, a ground or
-contact (`chosen`): the ground's penalty is far stiffer than any body (fem/implicit/effects.py),
-and the trapezoidal rule, which damps nothing, lets it ring; on the bunny resting on the ground
-its Newton step took 5.4 iterations a step to BDF2's 2.5, and its error did not fall with dt
+"auto", the default, is the trapezoidal rule, but BDF2 in a scene with a ground or contact
+(`chosen`): the ground's penalty is far stiffer than any body (fem/implicit/effects.py), and the
+trapezoidal rule, which damps nothing, lets it ring; on the bunny resting on the ground its Newton
+step took 5.4 iterations a step to BDF2's 2.5, and its error did not fall with dt
 (docs/benchmark.md). Rayleigh damping overdamps the fast modes, which the trapezoidal rule keeps
-ringing too: the coursework's struck linear epcot reached 1.55 times its volume at 2 s under it,
-2.02 under BDF2 and under backward Euler at dt / 10. In a damped scene BDF2 starts with one
-backward Euler step (`History.target`): run back in time a damped mode grows.
+ringing too (times -rho_infinity a step): the coursework's struck linear epcot reached 1.55 times
+its volume at 2 s under it, 2.02 under BDF2 and under backward Euler at dt / 10. BDF2 is not yet
+"auto"'s choice there: in float32 its extrapolated guess, accepted within round-off, leaves a
+damped body at rest jittering above the sleep threshold (a settling box never slept in 600
+steps). In a damped scene BDF2 starts with one backward Euler step (`History.target`): run back
+in time a damped mode grows.
 
 Fields (n vertices of the capacity), made on the first step that needs them:
     x_prev, v_prev (n, 3)   BDF2: x_(n-1) (m), v_(n-1) (m/s), the start of the last step
@@ -92,12 +95,11 @@ TRAPEZOIDAL = theta_rule(1.0)
 TWO_STEP = ("bdf2", "trapezoidal")     # the integrators that need the last step
 
 
-def chosen(integrator, dissipative):
-    """The integrator a step takes: `integrator`, or for "auto" BDF2 where the scene dissipates
-    (damping, a ground, contact), else the trapezoidal rule."""
+def chosen(integrator, ground):
+    """The integrator a step takes: `integrator`, or for "auto" BDF2 with a ground or contact, else trapezoidal."""
     if integrator != "auto":
         return integrator
-    return "bdf2" if dissipative else "trapezoidal"
+    return "bdf2" if ground else "trapezoidal"
 
 
 @ti.data_oriented

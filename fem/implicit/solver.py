@@ -107,7 +107,6 @@ class ImplicitSolver:
         self.safeguards = Safeguards(model, self.elasticity, self.effects, self.sleep, switches)
         self.history = History(model, self.sleep, switches)
         self.x_end = ti.Vector.field(3, float, model.capacity.vertices)   # m: where the last step ended
-        self.body_force = ti.field(ti.f64, model.capacity.bodies)          # (N s)^2: |dt f_elastic|^2 at a start
 
     @property
     def parts(self):
@@ -139,7 +138,7 @@ class ImplicitSolver:
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
         damped = self.effects.damped
-        integrator = chosen(settings.integrator, damped or ground or contact) if retry else "backward-euler"
+        integrator = chosen(settings.integrator, ground or contact) if retry else "backward-euler"
         rho = settings.rho_infinity
         if rho is None:          # by the scene: rest where damped, no ringing on a ground's or contact's penalty
             rho = DAMPED_RHO if damped or ground or contact else 1.0
@@ -232,10 +231,7 @@ class ImplicitSolver:
     def start_acceleration(self, x_n, h, dt):
         """The trapezoidal rule's a_n where the history gives none: M a_n = f(x_n) - D v_n + M g
         (+ the ground's force), the forces at the step's start, from -grad E at v = v^ = v_n with
-        x = x_n (R(x_n) already extracted), where it is h M a_n. A body whose elastic forces
-        are below its round-off floor (potential.body_floor) takes none of them: at rest in f32
-        they are round-off, and carried in a_n from step to step they cost a body at rest
-        solver iterations and energy trims."""
+        x = x_n (R(x_n) already extracted), where it is h M a_n."""
         p = self.potential
         if self.switches.ground:
             self.effects.start_contacts(x_n, p.x, h, dt)
@@ -245,23 +241,10 @@ class ImplicitSolver:
 
     @ti.kernel
     def store_acceleration(self, accel: ti.template(), h: float):
-        """accel <- -grad E / (h m), filtered (a pinned vertex does not accelerate), less the
-        elastic forces of a body where they are round-off."""
-        rhs, floor = ti.static(self.potential.rhs, self.potential.body_floor)
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_force[b] = 0.0
+        """accel <- -grad E / (h m), filtered (a pinned vertex does not accelerate)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
-            tets = self.effects.filtered(i, self.elasticity.gather(i))
-            self.body_force[self.model.vertex_body[i]] += ti.cast(tets.norm_sqr(), ti.f64)
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            b = self.model.vertex_body[i]
-            force = rhs[i]
-            if self.body_force[b] <= floor[b]:
-                force += self.elasticity.gather(i)                  # rhs holds -tets: take them out
-            accel[i] = self.effects.filtered(i, force) / (h * self.model.mass[i])
+            accel[i] = self.effects.filtered(i, self.potential.rhs[i]) / (h * self.model.mass[i])
 
     # ------------------------------------------------------------ a scene, live edits, memory
 
