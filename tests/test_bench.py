@@ -335,3 +335,10 @@ def test_point_labels_at_one_place_are_stacked_not_piled():
                                 (2.0, 1.01e-2, "1e-05", "green"), (8.0, 1e-3, "J5", "grey"), (2.0, 1e-2, "", "k")])
     plt.close(fig)
     assert offsets == [(3.0, 3.0), (3.0, 3.0 + LABEL_HEIGHT), (3.0, 3.0 + 2 * LABEL_HEIGHT), (3.0, 3.0)]
+
+
+def test_the_full_plan_is_the_nine_elastic_scenes_without_contact():
+    """two_boxes calls for contact; its steps measure the contact pairs' Newton iterations, not the axes."""
+    names = plan.full_plan().scenes
+    assert "two_boxes" not in names and len(names) == 9
+    assert all(plan.make_scene(n).effects.contact is None for n in names if n not in plan.BOXES)

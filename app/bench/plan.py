@@ -55,7 +55,11 @@ class Plan:
 
 
 def full_plan():
-    return Plan([*scenes.builtin_scenes(), "box1k", "box10k", "box50k"], (0.4, 1.0, 2.0), 2, 120.0, "epcot",
+    """Every built-in scene without contact, and the three larger bars. A scene with contact (two_boxes) is
+    left out: its steps are dominated by the contact pairs' Newton iterations, not by what the dt, integrator
+    and solver axes compare, and it alone would take longer than all the others together."""
+    elastic = [name for name in scenes.builtin_scenes() if scenes.load_scene(name).effects.contact is None]
+    return Plan([*elastic, "box1k", "box10k", "box50k"], (0.4, 1.0, 2.0), 2, 120.0, "epcot",
                 "box50k", profile="box50k")
 
 
