@@ -1,0 +1,82 @@
+"""The lab sheet's numbers (docs/experiments.md) are what its commands give, within the spread it states.
+
+Each test runs a sheet's command as a student types it (through `main.main`, f32 on the CPU as the
+command line runs) and reads the numbers the summary prints. The numbers and their spreads are
+written here once and must appear in the sheet as written, so the sheet and the runs cannot part.
+"""
+
+import contextlib
+import io
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SHEET = (ROOT / "docs" / "experiments.md").read_text()
+
+
+def summary(*argv):
+    """What `main.py simulate ...` prints."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main.main(["simulate", *argv])
+    assert code in (0, None), err.getvalue()
+    return out.getvalue()
+
+
+def volume_ratios(text):
+    """{body: its volume ratio at the end} from a summary."""
+    return {m.group(1): float(m.group(2)) for m in re.finditer(r"^  (\w+): .*volume ratio now ([-\d.]+)", text, re.M)}
+
+
+def total_energy(text):
+    return float(re.search(r"total ([-\d.e+]+) J", text).group(1))
+
+
+def stated(*texts):
+    """Each text is in the sheet as written."""
+    for text in texts:
+        assert text in SHEET, f"docs/experiments.md no longer says {text!r}"
+
+
+# Section 8: cube86 after 2 s, the right one-solve step and the naive variant: {body: volume ratio}, total J
+RIGHT = ({"soft": 0.983, "stiff": 1.000}, 1.79)
+NAIVE = ({"soft": 0.881, "stiff": 0.763}, 39.2)
+VOLUME_SPREAD, ENERGY_SPREAD = 0.003, 0.03       # the spread the sheet states: another processor's rounding
+
+
+@pytest.mark.parametrize("argv, expected", [(["--corotational", "--step", "single"], RIGHT), (["--naive"], NAIVE)],
+                         ids=["right", "naive"])
+def test_section_8_cube86_gives_the_volumes_and_energy_the_sheet_states(argv, expected):
+    volumes, energy = expected
+    stated(f"{volumes['soft']:.3f} and {volumes['stiff']:.3f}", f"{energy} J", "allow 0.003 on a volume ratio and 3 %")
+    text = summary("cube86", *argv, "--steps", "100")
+    got = volume_ratios(text)
+    for body, ratio in volumes.items():
+        assert got[body] == pytest.approx(ratio, abs=VOLUME_SPREAD), body
+    assert total_energy(text) == pytest.approx(energy, rel=ENERGY_SPREAD)
+
+
+# Section 8's table, the coursework's fertility over 3 s: soft statue's most inverted tets, its least and
+# most volume ratio; the stiff statue's most inverted tets
+FERTILITY = {"linear": (115, 0.950, 1.258, 3), "corotational": (155, 0.869, 1.021, 9), "naive": (224, 0.834, 1.020, 33)}
+COUNT_SPREAD, RATIO_SPREAD = 5, 0.01
+
+
+@pytest.mark.parametrize("method", list(FERTILITY))
+def test_section_8_the_coursework_fertility_table(method, cggs, tmp_path):
+    soft, least, most, stiff = FERTILITY[method]
+    stated(f"| {method} | {soft} | {least:.3f} .. {most:.3f} | {stiff} |", "within about 5 of these, and the ratios within 0.01")
+    stats = tmp_path / f"{method}.jsonl"
+    summary(str(cggs / "fertility-scene.txt"), f"--{method}", "--steps", "150", "--stats", str(stats))
+    rows = [json.loads(line) for line in stats.read_text().splitlines()]
+    assert len(rows) == 150
+    inverted = [max(row["body_inverted_tets"][b] for row in rows) for b in (0, 1)]   # body 0: the stiff statue
+    ratios = [row["volume_ratio"][1] for row in rows]
+    assert inverted[1] == pytest.approx(soft, abs=COUNT_SPREAD)
+    assert inverted[0] == pytest.approx(stiff, abs=COUNT_SPREAD)
+    assert min(ratios) == pytest.approx(least, abs=RATIO_SPREAD) and max(ratios) == pytest.approx(most, abs=RATIO_SPREAD)
