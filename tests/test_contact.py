@@ -256,3 +256,30 @@ def test_a_bad_contact_distance_is_one_error_line(tmp_path, value, message):
     assert out.returncode == 2
     assert out.stderr.strip().startswith("error:") and message in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_the_block_preconditioner_follows_the_pairs_touching_now(f64):
+    """PCG's block-Jacobi blocks include the pairs' blocks of the Newton iteration that uses them, so
+    preconditioning makes H better conditioned, not worse. Built once at the step's start, they
+    missed the pairs that touched later and kept those that let go: on the scene two_boxes, in
+    contact, cond(P H) was 152,000 against cond(H) 3,740 (numpy, from the assembled operators), and
+    every step ran PCG to its cap."""
+    sim = fem.Simulation(scenes.load_scene("two_boxes"))
+    while sim.stats().get("contact_pairs", 0) == 0 or sim.steps < 22:
+        sim.step()
+        assert sim.steps < 60
+    n = sim.model.n_vertices
+    cM, cK = sim.coefficients
+    H, P = np.zeros((3 * n, 3 * n)), np.zeros((3 * n, 3 * n))
+    for j in range(3 * n):
+        u = np.zeros((n, 3))
+        u.flat[j] = 1.0
+        H[:, j] = sim.solver.linear.apply_matrix(u, cM, cK).ravel()
+        P[:, j] = sim.solver.linear.apply_preconditioner(u, "jacobi").ravel()
+    np.testing.assert_allclose(H, H.T, atol=1e-12 * np.abs(H).max())
+    w, V = np.linalg.eigh(P)
+    assert w.min() > 0                                          # SPD
+    root = V @ np.diag(np.sqrt(w)) @ V.T
+    preconditioned = np.linalg.eigvalsh(root @ H @ root)
+    plain = np.linalg.eigvalsh(H)
+    assert preconditioned.max() / preconditioned.min() < plain.max() / plain.min()

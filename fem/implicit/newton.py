@@ -113,6 +113,10 @@ class Newton:
                 target = 1.0
             else:
                 target = max(1.0, FORCING ** 2 * out.rho)
+            if self.effects.has_contact and out.newton_iters > 0:
+                # the blocks of the pairs touching now: those of the step's start made PCG's operator
+                # 40 times worse conditioned than H itself once pairs came or went (two_boxes)
+                self.linear.preconditioning.build_preconditioner(cM, cK)
             out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
                                                preconditioner)
             out.newton_iters += 1
