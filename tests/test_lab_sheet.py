@@ -5,15 +5,12 @@ command line runs) and reads the numbers the summary prints. The numbers and the
 written here once and must appear in the sheet as written, so the sheet and the runs cannot part.
 """
 
-import contextlib
-import io
 import json
 import re
 from pathlib import Path
 
 import pytest
-
-import main
+from test_cli import run
 
 ROOT = Path(__file__).resolve().parents[1]
 SHEET = (ROOT / "docs" / "experiments.md").read_text()
@@ -21,11 +18,9 @@ SHEET = (ROOT / "docs" / "experiments.md").read_text()
 
 def summary(*argv):
     """What `main.py simulate ...` prints."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main.main(["simulate", *argv])
-    assert code in (0, None), err.getvalue()
-    return out.getvalue()
+    code, out, err = run("simulate", *argv)
+    assert code in (0, None), err
+    return out
 
 
 def volume_ratios(text):
