@@ -127,8 +127,9 @@ class SolverSettings:
                                         # order) | "auto": the trapezoidal rule, BDF2 where there is a ground
     rho_infinity: float | None = None   # the trapezoidal rule's numerical dissipation: a mode dt cannot
                                         # resolve is multiplied by -rho_infinity a step (1: none, the
-                                        # conserving scheme; 0: backward Euler's); None: 1, or with
-                                        # Rayleigh damping DAMPED_RHO, so that damped bodies come to rest
+                                        # conserving scheme; 0: backward Euler's); None: by the scene
+                                        # (integrators.default_rho): 1, or exp(-dt / 0.5 s) with Rayleigh
+                                        # damping, so that damped bodies come to rest
     max_newton: int = 20                # Newton iterations per step at most
     newton_tolerance: float = 1e-5      # per body: stop (unconverged) when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration

@@ -4,6 +4,8 @@ energy and a spinning body's angular momentum are kept), it keeps momentum exact
 order, and anything that breaks its history restarts it from the acceleration the forces give
 at the step's start (no backward Euler step)."""
 
+import math
+
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
@@ -12,7 +14,8 @@ from test_elastic import assembled_matrix
 from test_step_promises import angular_momentum, spinning_box
 
 import fem
-from app.bench.order import observed_order
+from app.bench.order import DTS, REFERENCE_DT, SECONDS, observed_order, twisting_state
+from fem.implicit.integrators import DAMPED_TAU, PENALTY_RHO, default_rho
 from fem.scene import Effects, SolverSettings
 
 
@@ -165,6 +168,37 @@ def test_it_is_second_order(f64, step):
     itself at dt 0.00125 s."""
     measured = observed_order(step=step, integrators=("trapezoidal",))["trapezoidal"]
     assert min(measured["slopes"]) >= 1.8, measured
+
+
+def damped_bar_errors(rho):
+    """The spinning, twisting bar of app/bench/order.py with Rayleigh damping (alpha 0.1, beta 0.02), the
+    trapezoidal rule at rho_infinity `rho` (None: the default): its largest vertex error at DTS against
+    itself at REFERENCE_DT."""
+    def run(dt):
+        scene, x, v = twisting_state(dt, "trapezoidal", effects=Effects(alpha=0.1, beta=0.02))
+        scene.solver.rho_infinity = rho
+        sim = fem.Simulation(scene)
+        sim.set_state(x, v)
+        for _ in range(round(SECONDS / dt)):
+            sim.step()
+        return sim.positions()
+    reference = run(REFERENCE_DT)
+    return [float(np.abs(run(dt) - reference).max()) for dt in DTS]
+
+
+@pytest.mark.slow
+def test_with_rayleigh_damping_its_default_dissipation_keeps_second_order(f64):
+    """With damping the default rho_infinity is exp(-dt / DAMPED_TAU) (integrators.default_rho): the modes
+    dt cannot follow decay by e each DAMPED_TAU seconds whatever dt is, and theta - 1/2 falls with dt,
+    so the rule stays second order. A fixed rho_infinity of 0.9 (the default before) is first order."""
+    assert default_rho(0.02, True, False) == pytest.approx(math.exp(-0.02 / DAMPED_TAU))
+    assert default_rho(0.02, False, False) == 1.0 and default_rho(0.001, True, True) == PENALTY_RHO
+    by_default, fixed = damped_bar_errors(None), damped_bar_errors(0.9)
+    slopes = [math.log2(a / b) for a, b in zip(by_default, by_default[1:])]
+    fixed_slopes = [math.log2(a / b) for a, b in zip(fixed, fixed[1:])]
+    assert min(slopes) >= 1.8, (slopes, by_default)
+    assert max(fixed_slopes) <= 1.6, (fixed_slopes, fixed)       # 1.50, 1.48 over 0.4 s (1.15, 1.07 over 1 s)
+    assert by_default[-1] < fixed[-1] / 2.5, (by_default, fixed)
 
 
 def test_auto_is_the_trapezoidal_rule_but_bdf2_on_the_ground(f64):

@@ -18,7 +18,7 @@ import numpy as np
 
 import fem
 from assets.generators import box
-from fem.scene import Body, Material, Scene, SolverSettings
+from fem.scene import Body, Effects, Material, Scene, SolverSettings
 
 DTS = (0.02, 0.01, 0.005)       # s
 REFERENCE_DT = 0.00125          # s: the same integrator, 16 times finer than the coarsest
@@ -27,20 +27,22 @@ INTEGRATORS = {"backward-euler": "backward Euler", "bdf2": "BDF2", "trapezoidal"
 GUIDES = (("backward-euler", 1), ("bdf2", 2))   # the slopes drawn, each through one integrator's coarsest point
 
 
-def twisting_state(dt, integrator, tolerance=1e-10, step="newton"):
-    """(scene, x, v): the spinning, twisting bar at dt, its state at t = 0 (fem.init first)."""
+def twisting_state(dt, integrator, tolerance=1e-10, step="newton", effects=None):
+    """(scene, x, v): the spinning, twisting bar at dt, its state at t = 0 (fem.init first);
+    effects: fem.scene.Effects (default none)."""
     mesh = box(size=(2.0, 0.5, 0.5), cells=(4, 1, 1), split=6)
     solver = SolverSettings(dt=dt, integrator=integrator, step=step, tolerance=tolerance, newton_tolerance=1e-12,
                             max_newton=100, max_iterations=1000, sleep=False)
-    scene = Scene("twisting bar", [Body("bar", mesh, Material(2e3, 0.3, 1000.0), "corotational")], solver=solver)
+    scene = Scene("twisting bar", [Body("bar", mesh, Material(2e3, 0.3, 1000.0), "corotational")], solver=solver,
+                  effects=effects or Effects())
     x = mesh.vertices.astype(np.float64)
     v = np.cross([1.0, 2.0, 0.0], x - x.mean(0)) + np.cross([3.0, 0.0, 0.0], x) * x[:, :1]
     return scene, x, v - v.mean(0)
 
 
-def twisting_bar(dt, integrator, step="newton"):
+def twisting_bar(dt, integrator, step="newton", effects=None):
     """Positions (n, 3) of the spinning, twisting bar after SECONDS at dt (fem.init first)."""
-    scene, x, v = twisting_state(dt, integrator, step=step)
+    scene, x, v = twisting_state(dt, integrator, step=step, effects=effects)
     sim = fem.Simulation(scene)
     sim.set_state(x, v)
     for _ in range(round(SECONDS / dt)):

@@ -17,7 +17,7 @@ import taichi as ti
 from fem.implicit.contact import Contact
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
-from fem.implicit.integrators import DAMPED_RHO, TRAPEZOIDAL, History, chosen
+from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho
 from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
@@ -141,7 +141,7 @@ class ImplicitSolver:
         integrator = chosen(settings.integrator, ground or contact) if retry else "backward-euler"
         rho = settings.rho_infinity
         if rho is None:          # by the scene: rest where damped, no ringing on a ground's or contact's penalty
-            rho = DAMPED_RHO if damped or ground or contact else 1.0
+            rho = default_rho(dt, damped, ground or contact)
         target = self.history.target(integrator, dt, model.version, rho, damped)
         h = target.h_per_dt * dt                                        # the integrator's effective step
         cM, cK = p.coefficients(h)
