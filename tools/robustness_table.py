@@ -194,10 +194,10 @@ Do not edit by hand.
 ## Hard cases
 
 Every case runs with linear and with corotational bodies, in f32 and f64, Rayleigh damping
-alpha = beta = 0.1, PCG tolerance 1e-4, at most 400 iterations per step. Energy is kinetic +
-elastic (J) at the start and the end; "inverted" counts tets with det F <= 0; "volume" is the
-final volume over the rest volume of each body. Iteration counts are for the whole shared
-solve (cases with the same dt run as bodies of one scene).
+alpha = beta = 0.1, PCG tolerance 1e-4, at most 400 CG iterations per linear solve (one each
+Newton iteration). Energy is kinetic + elastic (J) at the start and the end; "inverted" counts
+tets with det F <= 0; "volume" is the final volume over the rest volume of each body. Iteration
+counts are for the whole shared solve (cases with the same dt run as bodies of one scene).
 
 | case | what | method | f32 | f64 |
 |---|---|---|---|---|
