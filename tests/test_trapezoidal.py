@@ -14,7 +14,7 @@ from test_elastic import assembled_matrix
 from test_step_promises import angular_momentum, spinning_box
 
 import fem
-from app.bench.order import DTS, REFERENCE_DT, SECONDS, observed_order, twisting_state
+from app.bench.order import DTS, REFERENCE_DT, observed_order, twisting_bar
 from fem.implicit.integrators import DAMPED_TAU, PENALTY_RHO, default_rho
 from fem.scene import Effects, SolverSettings
 
@@ -175,13 +175,7 @@ def damped_bar_errors(rho):
     trapezoidal rule at rho_infinity `rho` (None: the default): its largest vertex error at DTS against
     itself at REFERENCE_DT."""
     def run(dt):
-        scene, x, v = twisting_state(dt, "trapezoidal", effects=Effects(alpha=0.1, beta=0.02))
-        scene.solver.rho_infinity = rho
-        sim = fem.Simulation(scene)
-        sim.set_state(x, v)
-        for _ in range(round(SECONDS / dt)):
-            sim.step()
-        return sim.positions()
+        return twisting_bar(dt, "trapezoidal", effects=Effects(alpha=0.1, beta=0.02), rho_infinity=rho)
     reference = run(REFERENCE_DT)
     return [float(np.abs(run(dt) - reference).max()) for dt in DTS]
 

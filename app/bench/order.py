@@ -27,12 +27,12 @@ INTEGRATORS = {"backward-euler": "backward Euler", "bdf2": "BDF2", "trapezoidal"
 GUIDES = (("backward-euler", 1), ("bdf2", 2))   # the slopes drawn, each through one integrator's coarsest point
 
 
-def twisting_state(dt, integrator, tolerance=1e-10, step="newton", effects=None):
+def twisting_state(dt, integrator, tolerance=1e-10, step="newton", effects=None, rho_infinity=None):
     """(scene, x, v): the spinning, twisting bar at dt, its state at t = 0 (fem.init first);
-    effects: fem.scene.Effects (default none)."""
+    effects: fem.scene.Effects (default none); rho_infinity: SolverSettings' (None: by the scene)."""
     mesh = box(size=(2.0, 0.5, 0.5), cells=(4, 1, 1), split=6)
     solver = SolverSettings(dt=dt, integrator=integrator, step=step, tolerance=tolerance, newton_tolerance=1e-12,
-                            max_newton=100, max_iterations=1000, sleep=False)
+                            max_newton=100, max_iterations=1000, sleep=False, rho_infinity=rho_infinity)
     scene = Scene("twisting bar", [Body("bar", mesh, Material(2e3, 0.3, 1000.0), "corotational")], solver=solver,
                   effects=effects or Effects())
     x = mesh.vertices.astype(np.float64)
@@ -40,9 +40,9 @@ def twisting_state(dt, integrator, tolerance=1e-10, step="newton", effects=None)
     return scene, x, v - v.mean(0)
 
 
-def twisting_bar(dt, integrator, step="newton", effects=None):
+def twisting_bar(dt, integrator, step="newton", effects=None, rho_infinity=None):
     """Positions (n, 3) of the spinning, twisting bar after SECONDS at dt (fem.init first)."""
-    scene, x, v = twisting_state(dt, integrator, step=step, effects=effects)
+    scene, x, v = twisting_state(dt, integrator, step=step, effects=effects, rho_infinity=rho_infinity)
     sim = fem.Simulation(scene)
     sim.set_state(x, v)
     for _ in range(round(SECONDS / dt)):

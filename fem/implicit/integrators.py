@@ -104,6 +104,8 @@ def default_rho(dt, damped, penalty):
     with Rayleigh damping, at most PENALTY_RHO with a ground's or contact's penalty."""
     rho = math.exp(-dt / DAMPED_TAU) if damped else 1.0
     return min(rho, PENALTY_RHO) if penalty else rho
+
+
 BACKWARD_EULER = Target("backward-euler", 1.0, 0.0, 1.0)
 BDF2 = Target("bdf2", 4.0 / 3.0, -1.0 / 3.0, 2.0 / 3.0)
 TRAPEZOIDAL = theta_rule(1.0)
