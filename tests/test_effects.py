@@ -76,3 +76,37 @@ def test_a_body_placed_deep_in_the_ground_rises_out_of_it_slowly(f64):
     assert sim.positions()[:, 1].min() > -1e-3         # out of the ground after 0.6 s
     assert np.diff(energies).max() <= 1e-6 * max(np.abs(energies))
 
+
+
+def test_friction_s_smoothing_is_twice_differentiable_and_its_curvatures_are_its_derivatives(f64):
+    """friction_shape (IPC's cubic below eps): f0(0) = 0; f1 = f0' and f1' are what it returns
+    (central differences); f0, f1 and f1' are continuous at eps (no kink for Newton's model to miss);
+    the force never passes Coulomb's (f1 <= 1); and the curvature across the slide is at least the
+    one along it, f1 / s >= f1' >= 0 (PSD, and the majorizer the first contact iterations take)."""
+    import taichi as ti
+
+    from fem.implicit.effects import FRICTION_SPEED, friction_shape
+    eps = FRICTION_SPEED
+    s = np.concatenate([np.linspace(1e-6, 3 * eps, 301), eps * (1 + np.array([-1e-7, 1e-7]))])
+    out = ti.Vector.field(3, ti.f64, len(s))
+
+    @ti.kernel
+    def shape(speeds: ti.types.ndarray()):
+        for i in range(out.shape[0]):
+            f0, across, along = friction_shape(ti.cast(speeds[i], ti.f64))
+            out[i] = ti.Vector([f0, across, along], ti.f64)
+
+    def at(speeds):
+        shape(np.asarray(speeds, dtype=np.float64))
+        return out.to_numpy()[:len(speeds)]
+
+    f0, across, along = at(s).T
+    h = 1e-4 * eps
+    up, down = at(s + h), at(s - h)
+    np.testing.assert_allclose((up[:, 0] - down[:, 0]) / (2 * h), across * s, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose((up[:, 1] * (s + h) - down[:, 1] * (s - h)) / (2 * h), along, rtol=1e-5, atol=1e-3 / eps)
+    left, right = at(s[-2:]).T[:, 0], at(s[-2:]).T[:, 1]
+    np.testing.assert_allclose(left, right, rtol=1e-5, atol=1e-5 / eps)    # f0, f1 / s, f1' across eps
+    assert at([0.0])[0, 0] == 0.0
+    assert (across * s <= 1 + 1e-12).all() and (across >= along - 1e-9).all() and (along >= -1e-9).all()
+    np.testing.assert_allclose(at([0.0])[0, 1:], [2 / eps, 2 / eps])      # sticking: 2 mu lambda / eps, isotropic

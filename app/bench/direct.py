@@ -307,13 +307,17 @@ class DirectSolver:
         hess[:, 1, 1] = self.dt ** 2 * k * (d < 0)
         u = v[:, [0, 2]]
         s = np.linalg.norm(u, axis=1)
-        c = self.dt * self.effects.friction * normal / np.maximum(s, FRICTION_SPEED)
-        f0 = np.where(s < FRICTION_SPEED, 0.5 * s * s / FRICTION_SPEED, s - 0.5 * FRICTION_SPEED)
-        grad[:, [0, 2]] = c[:, None] * u
-        t = u / np.maximum(s, FRICTION_SPEED)[:, None] * (s >= FRICTION_SPEED)[:, None]   # sliding: no
-        block = c[:, None, None] * (np.eye(2) - t[:, :, None] * t[:, None, :])           # stiffness along t
+        eps, lam = FRICTION_SPEED, self.dt * self.effects.friction * normal
+        slow = s < eps                                    # IPC's cubic below eps, |u| above
+        f0 = np.where(slow, s * s / eps - s ** 3 / (3 * eps * eps), s - eps / 3)
+        across = np.where(slow, 2 / eps - s / eps ** 2, 1 / np.maximum(s, eps))     # f1(s) / s
+        along = np.where(slow, 2 / eps - 2 * s / eps ** 2, 0.0)                       # f1'(s)
+        grad[:, [0, 2]] = (lam * across)[:, None] * u
+        t = u / np.maximum(s, 1e-30)[:, None]
+        block = (lam * across)[:, None, None] * np.eye(2) \
+            + (lam * (along - across))[:, None, None] * t[:, :, None] * t[:, None, :]
         hess[:, 0, 0], hess[:, 0, 2], hess[:, 2, 0], hess[:, 2, 2] = block.reshape(-1, 4).T
-        energy = 0.5 * (k * d * d).sum() + (self.dt * self.effects.friction * normal * f0).sum()
+        energy = 0.5 * (k * d * d).sum() + (lam * f0).sum()
         return energy, grad, hess
 
     def ground_newton(self, b, fixed, tolerance=1e-12, iterations=50):

@@ -18,8 +18,10 @@ w, normal n and normal force lambda = k m_p (d_hat - d) for the whole step, and 
 h mu lambda f0(|u_T|), u_T the pair's relative tangential velocity.
 
 No vertex passes through a triangle: each line search starts with a step bound (`prepare_search`,
-a conservative additive CCD, Li et al. 2021): a pair at distance d0 whose points move at most
-D along the step closes at most D a, so a <= SAFETY d0 / D keeps it apart. The same pass finds
+additive CCD, Li et al. 2021, `time_of_impact`): a pair whose four points move by at most D
+relative to their mean along the step closes at most D a, so it may advance by SAFETY d(a) / D
+at a time, d(a) its distance there, until it has closed SAFETY of its first gap d0. A pair that
+slides along its triangle, or moves with it, keeps the full step. The same pass finds
 the pairs for the line search: every pair within d_hat + 2 max_i |h d_i| of the accepted
 iterate, the only ones that can come closer than d_hat along the step.
 
@@ -49,10 +51,11 @@ import numpy as np
 import taichi as ti
 
 from fem.implicit.broad_phase import BroadPhase, closest_weights
-from fem.implicit.effects import FRICTION_SPEED
+from fem.implicit.effects import friction_shape
 
 SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
 PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
+ADVANCES = 32                # additive CCD's conservative advances per pair and line search
 TOUCHING = 1e-9              # m: pairs closer than this cannot be kept apart by a step bound
 
 
@@ -166,18 +169,14 @@ class Contact:
             u = c[0] * v[ids[0]] + c[1] * v[ids[1]] + c[2] * v[ids[2]] + c[3] * v[ids[3]]
             u -= u.dot(n) * n                                  # tangential relative velocity
             s = u.norm()
-            eps = ti.static(FRICTION_SPEED)
-            f0 = s - 0.5 * eps
-            if s < eps:
-                f0 = 0.5 * s * s / eps
+            f0, across, along = friction_shape(s)
+            if self.effects.majorize[None]:
+                along = across
             lam = h * mu * self.stick_force[q]
             body_E[self.model.vertex_body[ids[0]]] += ti.cast(lam, ti.f64) * ti.cast(f0, ti.f64)
-            g = lam / ti.max(s, eps)
-            tangent = ti.Matrix.identity(float, 3) - n.outer_product(n)
-            A = g * tangent
-            if s >= eps:
-                t = u / s
-                A = g * (tangent - t.outer_product(t))
+            g = lam * across
+            t = u / ti.max(s, 1e-30)
+            A = g * (ti.Matrix.identity(float, 3) - n.outer_product(n)) + lam * (along - across) * t.outer_product(t)
             self.scatter(self.force, ids, c, -g * u)
             for a in ti.static(range(4)):
                 self.block[ids[a]] += c[a] * c[a] * A
@@ -280,11 +279,38 @@ class Contact:
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids = self.vertices(q)
-            gap = self.gap(x, ids)[0]
-            move = h * (d[ids[0]].norm() + ti.max(d[ids[1]].norm(), d[ids[2]].norm(), d[ids[3]].norm()))
-            if gap > TOUCHING and move * self.step_limit[None] > SAFETY * gap:
-                ti.atomic_min(self.step_limit[None], SAFETY * gap / move)
+            ti.atomic_min(self.step_limit[None], self.time_of_impact(x, d, h, ids, limit))
         return self.step_limit[None]
+
+    @ti.func
+    def time_of_impact(self, x: ti.template(), d: ti.template(), h, ids, limit):
+        """The largest a <= limit along x + a h d that keeps the pair at least (1 - SAFETY) of its
+        gap apart: additive CCD (Li et al. 2021). The four points move by h d less their mean, so
+        the gap closes at most `move` a; the search advances by SAFETY gap(a) / move while the gap
+        stays above (1 - SAFETY) of the first one. A pair that slides along its triangle, or moves
+        with it, closes little and keeps the full step."""
+        mean = 0.25 * (d[ids[0]] + d[ids[1]] + d[ids[2]] + d[ids[3]])
+        u = ti.Vector.zero(float, 3, 4)
+        for a in ti.static(range(4)):
+            u[:, a] = h * (d[ids[a]] - mean)
+        move = u[:, 0].norm() + ti.max(u[:, 1].norm(), u[:, 2].norm(), u[:, 3].norm())
+        gap0 = self.gap(x, ids)[0]
+        t, result = 0.0, limit
+        if gap0 > TOUCHING and move * limit > SAFETY * gap0:
+            gap = gap0
+            for _ in range(ADVANCES):
+                s = t + SAFETY * gap / move                   # the gap closes at most SAFETY of itself
+                p, a, b, c = (x[ids[0]] + s * u[:, 0], x[ids[1]] + s * u[:, 1],
+                              x[ids[2]] + s * u[:, 2], x[ids[3]] + s * u[:, 3])
+                w = closest_weights(p, a, b, c)
+                gap = (p - (w[0] * a + w[1] * b + w[2] * c)).norm()
+                if t > 0 and gap < (1.0 - SAFETY) * gap0:     # as close as it may come: stop at t
+                    break
+                t = s
+                if t >= limit:
+                    break
+            result = ti.min(t, limit)
+        return result
 
     # ------------------------------------------------------------ for checks and tests
 

@@ -17,10 +17,11 @@ deeper than one step of RECOVERY_SPEED (a body placed into the ground) is not sh
 energy stored there: within a step its plane is RECOVERY_SPEED dt above where it starts
 (`plane`), so it rises at that speed, releasing the stored energy as it goes. Friction is
 Coulomb's, lagged as in IPC (Li et al. 2020): lambda_i is the normal force at the step's start
-(N), mu the coefficient, and f0 smooths |u| below FRICTION_SPEED into a parabola, so a vertex
-that slides loses mu lambda_i of force and one nearly at rest sticks. It only dissipates.
-Sticking is smoothed: a vertex held by friction against a tangential force F creeps at
-FRICTION_SPEED F / (mu lambda_i) < FRICTION_SPEED, so a body resting on the ground counts as
+(N), mu the coefficient, and f0 smooths |u| below FRICTION_SPEED (`friction_shape`, IPC's
+cubic), so a vertex that slides loses mu lambda_i of force and one nearly at rest sticks. It
+only dissipates. Sticking is smoothed: a vertex held by friction against a tangential force
+F < mu lambda_i creeps below FRICTION_SPEED (at about FRICTION_SPEED F / (2 mu lambda_i) for
+a small F), so a body resting on the ground counts as
 quiet below that speed (fem/simulation.py puts it to sleep).
 
 Fields (n vertices of the capacity; one entry when the scene has no ground):
@@ -33,6 +34,8 @@ Fields (n vertices of the capacity; one entry when the scene has no ground):
     plane (n,)            the plane's height for vertex i in this step, m: y_g, or lower for a
                           vertex deep below it
     normal_force (n,)     lambda_i at the step's start, N
+    majorize ()           1: friction's Hessian takes its curvature across the slide along it too
+                          (fem/implicit/newton.py sets it for a contact step's first iterations)
     contact_hessian (n, 4)  the contact's and friction's Hessian at the accepted iterate,
                           (xx, yy, zz, xz), kg/s (H-units: N s per m/s): a vertex's own block
 """
@@ -40,10 +43,26 @@ Fields (n vertices of the capacity; one entry when the scene has no ground):
 import taichi as ti
 
 CONTACT_STIFFNESS = 1000.0   # k dt^2: the penalty's stiffness in units of a vertex's inertia over one step
-FRICTION_SPEED = 1e-3        # m/s: below this tangential speed friction is a smooth parabola (sticking);
+FRICTION_SPEED = 1e-3        # m/s: below this tangential speed friction is smoothed (sticking);
                              # a body resting on the ground may creep at up to this speed (fem/simulation.py)
 RECOVERY_SPEED = 1.0         # m/s: how fast a vertex placed deep in the ground rises out of it
 UNREACHABLE = 1e30           # m: a plane no vertex is below
+
+
+@ti.func
+def friction_shape(s):
+    """IPC's smoothing of a speed s = |u| for lagged friction (Li et al. 2020), eps = FRICTION_SPEED:
+    f0(s) = s^2 / eps - s^3 / (3 eps^2) below eps, s - eps / 3 above, so the force mu lambda f1(s),
+    f1 = f0' = 2 s / eps - s^2 / eps^2, rises from 0 to Coulomb's mu lambda at eps with no kink
+    (f0 is twice differentiable: Newton's model holds across sticking and sliding). Returns
+    (f0(s), f1(s) / s, f1'(s)): the energy, and the Hessian's curvatures across and along u."""
+    eps = ti.static(FRICTION_SPEED)
+    f0, across, along = s - eps / 3.0, 1.0 / ti.max(s, eps), 0.0 * s
+    if s < eps:
+        f0 = s * s / eps - s * s * s / (3.0 * eps * eps)
+        across = 2.0 / eps - s / (eps * eps)
+        along = 2.0 / eps - 2.0 * s / (eps * eps)
+    return f0, across, along
 
 
 @ti.data_oriented
@@ -58,6 +77,7 @@ class Effects:
         self.pins = switches.pins
         self.serial_vertices = switches.serial_vertices
         self.mass_damping = ti.field(float, ())
+        self.majorize = ti.field(ti.i32, ())
         self.stiffness_damping = ti.field(float, ())
         self.gravity = ti.Vector.field(3, float, ())
         self.ground = ti.field(float, ())
@@ -130,27 +150,24 @@ class Effects:
     def friction_energy(self, i, v, h):
         """h mu lambda_i f0(|u|) of vertex i at velocity v, float64 (J)."""
         u = ti.cast(ti.Vector([v[0], v[2]]), ti.f64).norm()
-        eps = ti.static(FRICTION_SPEED)
-        f0 = u - 0.5 * eps
-        if u < eps:
-            f0 = 0.5 * u * u / eps
-        return ti.cast(h * self.friction[None] * self.normal_force[i], ti.f64) * f0
+        return ti.cast(h * self.friction[None] * self.normal_force[i], ti.f64) * friction_shape(u)[0]
 
     @ti.func
     def contact_force(self, i, x, v, h):
         """-grad of the contact and friction terms of vertex i at (x, v), N s; and their Hessian
         there (kg/s), kept in contact_hessian for the products H u. Friction's Hessian is
-        I / eps while sticking (|u| < eps) and (I - t t^T) / |u| while sliding along t: none
-        along the slide, where the force is constant."""
+        h mu lambda_i (f1(s) / s (I - t t^T) + f1'(s) t t^T), s = |u|, t = u / s (`friction_shape`):
+        2 / eps I at rest, falling smoothly to none along the slide at eps and beyond."""
         km = self.contact_stiffness[None] * self.model.mass[i]
         d = ti.min(0.0, x[1] - self.plane[i])
         s = ti.Vector([v[0], v[2]]).norm()
-        c = h * self.friction[None] * self.normal_force[i] / ti.max(s, ti.static(FRICTION_SPEED))
-        xx, zz, xz = c, c, 0.0
-        if s >= ti.static(FRICTION_SPEED):
-            tx, tz = v[0] / s, v[2] / s
-            xx, zz, xz = c * (1.0 - tx * tx), c * (1.0 - tz * tz), -c * tx * tz
-        self.contact_hessian[i] = ti.Vector([xx, h * h * km * (d < 0.0), zz, xz])
+        _, across, along = friction_shape(s)
+        if self.majorize[None]:
+            along = across
+        lam = h * self.friction[None] * self.normal_force[i]
+        c, e = lam * across, lam * (along - across)
+        tx, tz = v[0] / ti.max(s, 1e-30), v[2] / ti.max(s, 1e-30)
+        self.contact_hessian[i] = ti.Vector([c + e * tx * tx, h * h * km * (d < 0.0), c + e * tz * tz, e * tx * tz])
         return ti.Vector([-c * v[0], -h * km * d, -c * v[2]])
 
     @ti.func
@@ -175,7 +192,7 @@ class Effects:
             km = self.contact_stiffness[None] * self.model.mass[i]
             self.plane[i] = ti.min(self.ground[None], xn[i][1] + ti.static(RECOVERY_SPEED) * dt)
             self.normal_force[i] = km * ti.max(0.0, self.plane[i] - xn[i][1])
-            drag = h * self.friction[None] * self.normal_force[i] / ti.static(FRICTION_SPEED)
+            drag = h * self.friction[None] * self.normal_force[i] * friction_shape(0.0)[1]
             self.contact_hessian[i] = ti.Vector([drag, h * h * km * (x[i][1] < self.plane[i]), drag, 0.0])
 
     @ti.kernel

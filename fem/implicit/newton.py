@@ -49,6 +49,7 @@ from fem.runtime import epsilon
 
 ARMIJO = 1e-4            # sufficient decrease: E(v + a d) <= E(v) + ARMIJO a grad.d
 MAX_HALVINGS = 12        # line search: a >= 2^-12
+MAJORIZED = 3            # with contact, the first Newton iterations take friction's majorizer (`solve`)
 FORCING = 0.1            # inexact Newton from v = 0: CG reduces the gradient by this factor (at least)
 FIRST_BLEND = 0.5        # a body's first blend of the Adams-Bashforth guess: v_n + dt a_n
 TWO_F64 = ti.types.vector(2, ti.f64)
@@ -101,6 +102,13 @@ class Newton:
         frozen: the rotations stay those of the first iterate (the one-solve step on the ground:
         E is then quadratic but for the ground's terms, and the iterations find the contacts)."""
         p = self.potential
+        # With contact, a pair's friction curves by 2 / eps while it sticks and not at all along its
+        # slide: Newton's model sends a sliding pair that should stop far past rest, and one line
+        # search step for all the bodies a pair joins halves for it (two_boxes: 20 iterations a
+        # step, none converged). The first MAJORIZED iterations give friction its curvature across
+        # the slide along it too, f1(s) / s >= f1'(s): a quadratic above friction on any line, so a
+        # full step never carries a pair past rest; then Newton's own model finishes.
+        self.effects.majorize[None] = int(self.effects.has_contact)
         out = Solved(rho=self.evaluate_first(h, tolerance, int(self.from_guess)))   # E and grad E: the first iterate
         # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the
         # tolerance at once, and off the ground one iteration is the answer. From the guess, what
@@ -137,6 +145,7 @@ class Newton:
                 if moved == 0:
                     break
                 p.energy(p.v0, p.x, p.v, h, 1)
+            self.effects.majorize[None] = int(self.effects.has_contact and out.newton_iters < MAJORIZED)
             change, rho = self.settle(h, tolerance, settings.newton_tolerance)
             out.rho = float(rho)
             if change <= 1.0:                                 # every body's velocity has settled
