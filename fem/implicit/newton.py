@@ -108,7 +108,8 @@ class Newton:
         # step, none converged). The first MAJORIZED iterations give friction its curvature across
         # the slide along it too, f1(s) / s >= f1'(s): a quadratic above friction on any line, so a
         # full step never carries a pair past rest; then Newton's own model finishes.
-        self.effects.majorize[None] = int(self.effects.has_contact)
+        if self.effects.has_contact:
+            self.effects.majorize[None] = 1
         out = Solved(rho=self.evaluate_first(h, tolerance, int(self.from_guess)))   # E and grad E: the first iterate
         # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the
         # tolerance at once, and off the ground one iteration is the answer. From the guess, what
@@ -145,7 +146,8 @@ class Newton:
                 if moved == 0:
                     break
                 p.energy(p.v0, p.x, p.v, h, 1)
-            self.effects.majorize[None] = int(self.effects.has_contact and out.newton_iters < MAJORIZED)
+            if self.effects.has_contact and out.newton_iters <= MAJORIZED:
+                self.effects.majorize[None] = int(out.newton_iters < MAJORIZED)
             change, rho = self.settle(h, tolerance, settings.newton_tolerance)
             out.rho = float(rho)
             if change <= 1.0:                                 # every body's velocity has settled
