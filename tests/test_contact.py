@@ -104,7 +104,8 @@ def test_the_contact_gradient_is_the_energy_s_and_its_hessian_is_symmetric_and_p
         eps = 1e-6
         slope = (contact_terms(sim, x + eps * u)[0] - contact_terms(sim, x - eps * u)[0]) / (2 * eps)
         assert slope == pytest.approx(-(force * u).sum(), rel=1e-6, abs=1e-9 * E)
-    # the numbers themselves, from numpy: E = sum k m_p / 2 (d_hat - d)^2 over pairs closer than d_hat
+    # the numbers themselves, from numpy: IPC's barrier E = sum -k m_p (d_hat - d)^2 ln(d / d_hat) over
+    # pairs closer than d_hat, and Gauss-Newton's Hessian k m_p b''(d) g g^T
     k = sim.solver.effects.contact_stiffness[None]
     d_hat = contact.distance[None]
     pairs = contact.pairs.to_numpy()[:contact.pair_count[None]]
@@ -113,7 +114,7 @@ def test_the_contact_gradient_is_the_energy_s_and_its_hessian_is_symmetric_and_p
     for p, t in pairs:
         d, c = point_triangle_distance(x[p], *x[triangles[t]])
         if d < d_hat:
-            expected += 0.5 * k * m.mass_np[p] * (d_hat - d) ** 2
+            expected += -k * m.mass_np[p] * (d_hat - d) ** 2 * np.log(d / d_hat)
             n = (x[p] - c) / d
             a, b, e = x[triangles[t]]
             s, r = np.linalg.lstsq(np.column_stack([b - a, e - a]), c - a, rcond=None)[0]
@@ -121,7 +122,8 @@ def test_the_contact_gradient_is_the_energy_s_and_its_hessian_is_symmetric_and_p
             g = np.zeros(3 * m.n_vertices)
             for vertex, weight in zip([p, *triangles[t]], [1.0, *(-w)]):
                 g[3 * vertex:3 * vertex + 3] += weight * n
-            H += k * m.mass_np[p] * np.outer(g, g)
+            curvature = 4 * (d_hat - d) / d + ((d_hat - d) / d) ** 2 - 2 * np.log(d / d_hat)
+            H += k * m.mass_np[p] * curvature * np.outer(g, g)
     assert E == pytest.approx(expected, rel=1e-9)
     contact_terms(sim, x)                               # the Hessian at x (the last evaluation's)
     for _ in range(3):                                  # H u: numpy's Gauss-Newton matrix, symmetric, PSD

@@ -4,17 +4,21 @@ Each surface vertex p and each surface triangle t = (t0, t1, t2) that does not c
 another body or of the same one, are a pair. With d = |p - c| the distance from p to the
 closest point c = sum_j w_j t_j of the triangle (w_j its barycentric weights), the pair stores
 
-    C(x) = k m_p / 2 max(0, d_hat - d)^2,   k = CONTACT_STIFFNESS / dt^2   (J)
+    C(x) = -k m_p (d_hat - d)^2 ln(d / d_hat)  for d < d_hat,   k = CONTACT_STIFFNESS / dt^2   (J)
 
-a penalty like the ground's (fem/implicit/effects.py) across a contact thickness d_hat (the
-scene's `distance`). Its gradient is exact: grad_p d = n = (p - c) / d, grad_tj d = -w_j n (c
-is the closest point, so moving it along the triangle changes d to first order by nothing).
-Its Hessian is Gauss-Newton's, k m_p n n^T on the pair's 12 dofs weighted by (1, -w0, -w1,
--w2): positive semi-definite, so H stays SPD for PCG. C only depends on the positions, not on
-which pairs were found, as long as the broad phase finds every pair closer than d_hat.
+IPC's log barrier (Li et al. 2020, `barrier`) across a contact thickness d_hat (the scene's
+`distance`), with the ground's stiffness k m_p (fem/implicit/effects.py). It has no kink at d_hat
+and grows without bound as d -> 0: a penalty k m_p / 2 (d_hat - d)^2 stores at most
+k m_p d_hat^2 / 2, less than a plate at 100 m/s brings, and the step's minimisation pushed such
+pairs together until they crossed. Its gradient is exact: grad_p d = n = (p - c) / d, grad_tj d =
+-w_j n (c is the closest point, so moving it along the triangle changes d to first order by
+nothing). Its Hessian is Gauss-Newton's, k m_p b''(d) n n^T on the pair's 12 dofs weighted by
+(1, -w0, -w1, -w2): positive semi-definite, so H stays SPD for PCG. C only depends on the
+positions, not on which pairs were found, as long as the broad phase finds every pair closer
+than d_hat.
 
 Friction is lagged as the ground's: the pairs touching at the step's start keep their weights
-w, normal n and normal force lambda = k m_p (d_hat - d) for the whole step, and add
+w, normal n and normal force lambda = -k m_p b'(d) for the whole step, and add
 h mu lambda f0(|u_T|), u_T the pair's relative tangential velocity.
 
 No vertex passes through a triangle: each line search starts with a step bound (`prepare_search`,
@@ -57,6 +61,19 @@ SAFETY = 0.9                 # a line search step closes at most this share of a
 PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
 ADVANCES = 32                # additive CCD's conservative advances per pair and line search
 TOUCHING = 1e-9              # m: pairs closer than this cannot be kept apart by a step bound
+
+
+@ti.func
+def barrier(d, d_hat):
+    """IPC's log barrier (Li et al. 2020) of a pair at distance d < d_hat, per unit k m_p:
+    b(d) = -(d_hat - d)^2 ln(d / d_hat), float64 (m^2); the push -b'(d) = e (e / d - 2 ln(d / d_hat)),
+    e = d_hat - d (m); and the curvature b''(d) = 4 e / d + e^2 / d^2 - 2 ln(d / d_hat). It is 0 with
+    its first two derivatives at d_hat and grows without bound as d -> 0, so no minimisation brings a
+    pair together, however fast it comes (a penalty holds at most k m_p d_hat^2 / 2)."""
+    d = ti.max(d, ti.static(TOUCHING))
+    e, log = d_hat - d, ti.log(d / d_hat)
+    phi = -ti.cast(e, ti.f64) ** 2 * ti.cast(log, ti.f64)
+    return phi, e * (e / d - 2.0 * log), 4.0 * e / d + e * e / (d * d) - 2.0 * log
 
 
 @ti.data_oriented
@@ -154,10 +171,10 @@ class Contact:
             km = self.effects.contact_stiffness[None] * self.model.mass[ids[0]]
             A = ti.Matrix.zero(float, 3, 3)
             if d < d_hat:
-                depth = d_hat - d
-                body_E[self.model.vertex_body[ids[0]]] += 0.5 * ti.cast(km, ti.f64) * ti.cast(depth, ti.f64) ** 2
-                self.scatter(self.force, ids, c, h * km * depth * n)
-                A = h * h * km * n.outer_product(n)
+                phi, push, curve = barrier(d, d_hat)
+                body_E[self.model.vertex_body[ids[0]]] += ti.cast(km, ti.f64) * phi
+                self.scatter(self.force, ids, c, h * km * push * n)
+                A = h * h * km * curve * n.outer_product(n)
                 for a in ti.static(range(4)):
                     self.block[ids[a]] += c[a] * c[a] * A
             self.pair_weights[q], self.pair_matrix[q] = c, A
@@ -230,7 +247,7 @@ class Contact:
                 k = ti.atomic_add(self.stick_count[None], 1)
                 self.sticks[k] = self.pairs[q]
                 self.stick_weights[k], self.stick_normal[k] = c, n
-                self.stick_force[k] = self.effects.contact_stiffness[None] * self.model.mass[ids[0]] * (d_hat - d)
+                self.stick_force[k] = self.effects.contact_stiffness[None] * self.model.mass[ids[0]] * barrier(d, d_hat)[1]
         self.evaluate(x, v, h, body_E)            # (body_E is the energy pass's to fill: it starts it anew)
 
     @ti.kernel
@@ -346,7 +363,7 @@ class Contact:
             d, n, c = self.gap(x, ids)
             if d < d_hat:
                 km = ti.cast(self.effects.contact_stiffness[None] * self.model.mass[ids[0]], ti.f64)
-                e = 0.25 * km * ti.cast(d_hat - d, ti.f64) ** 2
+                e = 0.5 * km * barrier(d, d_hat)[0]
                 self.energy[ids[0]] += e
                 for a in ti.static(range(1, 4)):
                     self.energy[ids[a]] -= ti.cast(c[a], ti.f64) * e
