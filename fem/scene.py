@@ -98,7 +98,7 @@ class Impulse:
 class ContactEffect:
     """Contact between bodies and of a body with itself (fem/implicit/contact.py)."""
 
-    distance: float = 0.01              # contact thickness d_hat, m: the penalty acts on pairs closer than this
+    distance: float = 0.01              # contact thickness d_hat, m: the barrier acts on pairs closer than this
     friction: float = 0.0               # Coulomb's coefficient mu between surfaces (>= 0)
 
 

@@ -16,7 +16,7 @@ from itertools import groupby
 import numpy as np
 
 from fem.mesh import TetMesh, prepare_mesh
-from fem.scene import Body, Effects, Initial, Material, Scene, Selection, SolverSettings
+from fem.scene import Body, ContactEffect, Effects, Impulse, Initial, Material, Scene, Selection, SolverSettings
 
 METHODS = ("linear", "corotational")
 DAMPING = Effects(alpha=0.1, beta=0.1)       # the coursework's Rayleigh damping
@@ -25,15 +25,17 @@ DAMPING = Effects(alpha=0.1, beta=0.1)       # the coursework's Rayleigh damping
 # ---------------------------------------------------------------- meshes
 
 def cube(cells=2, size=(1.0, 1.0, 1.0)):
-    """A box of `size` m centred at the origin, cells^3 cubes of 6 tets each (Kuhn split)."""
-    axes = [np.linspace(-s / 2, s / 2, cells + 1) for s in size]
+    """A box of `size` m centred at the origin, cells^3 (or cells = (nx, ny, nz)) cubes of 6 tets
+    each (Kuhn split)."""
+    n = np.broadcast_to(cells, 3)
+    axes = [np.linspace(-s / 2, s / 2, c + 1) for s, c in zip(size, n)]
     X = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
-    index = np.arange((cells + 1) ** 3).reshape((cells + 1,) * 3)
+    index = np.arange(np.prod(n + 1)).reshape(tuple(n + 1))
     kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
     tets = []
-    for i in range(cells):
-        for j in range(cells):
-            for k in range(cells):
+    for i in range(n[0]):
+        for j in range(n[1]):
+            for k in range(n[2]):
                 corner = [index[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
                 tets += [[corner[t] for t in tet] for tet in kuhn]
     return prepare_mesh(X, np.array(tets), f"cube(cells={cells}, size={size})")
@@ -194,3 +196,46 @@ def groups(cases=HARD_CASES):
     """Cases that can share one Simulation: same dt and number of steps."""
     key = lambda case: (case.dt, case.steps)  # noqa: E731
     return [list(group) for _, group in groupby(sorted(cases, key=key), key=key)]
+
+
+# ---------------------------------------------------------------- bodies that meet (contact, issue 35)
+
+# Each must end every step with no surface vertex inside another body's surface and no surface
+# edge through another body's triangle (tests/test_contact_hard.py checks with numpy, apart
+# from the contact code), its total energy never rising (but at an impulse), and finite.
+# Corotational bodies of E 1e5 Pa (the plate 1e6), contact distance 0.01 m.
+CONTACT_DTS = (0.1, 0.01, 0.001)
+CONTACT_SECONDS = {"plate": 0.05, "stack": 1.0, "thrown": 0.6}
+THROW_TIME, THROW_SPEED = 0.3, 10.0          # s, m/s: the ball's impulse towards the resting pile
+
+
+def contact_box(name, size, cells, position, E=1e5):
+    """A corotational box body (density 1000 kg/m^3, nu 0.3) of `size` m centred at `position`."""
+    mesh = cube(cells=cells, size=size)
+    return Body(name, TetMesh(mesh.vertices + np.asarray(position, float), mesh.tets, mesh.source),
+                Material(E, 0.3, 1000.0), "corotational")
+
+
+def contact_case(name, dt):
+    """A contact hard case at dt: "plate10" and "plate100" (a 4 cm plate hitting a free block at
+    10 or 100 m/s, no gravity), "stack" (5 boxes of 0.4 m stacked on the ground) or "thrown"
+    (a 0.3 m box thrown at 10 m/s into a stack of 3 at THROW_TIME)."""
+    contact = ContactEffect(distance=0.01, friction=0.3)
+    initial, impulses = [], []
+    if name.startswith("plate"):
+        speed = float(name[len("plate"):])
+        bodies = [contact_box("block", (1.0, 0.5, 1.0), (4, 2, 4), (0.0, 0.0, 0.0)),
+                  contact_box("plate", (0.8, 0.04, 0.8), (4, 1, 4), (0.05, 0.5, 0.0), E=1e6)]
+        initial.append(Initial(Selection(1), "velocity", (np.array([0.0, -speed, 0.0]),)))
+        effects = Effects(contact=ContactEffect(distance=0.01))
+    else:
+        count = 5 if name == "stack" else 3
+        bodies = [contact_box(f"box {k}", (0.4, 0.4, 0.4), (2, 2, 2), (0.02 * k, 0.21 + 0.43 * k, 0.0))
+                  for k in range(count)]
+        if name == "thrown":
+            bodies.append(contact_box("ball", (0.3, 0.3, 0.3), (2, 2, 2), (-1.5, 0.6, 0.0)))
+            impulses.append(Impulse(THROW_TIME, Selection(count), np.array([THROW_SPEED, 0.0, 0.0])))
+        effects = Effects(gravity=(0.0, -9.81, 0.0), ground=0.0, friction=0.4, contact=contact)
+    scene = Scene(f"{name} dt {dt:g} s", bodies, effects=effects, solver=SolverSettings(dt=dt),
+                  initial=initial, impulses=impulses)
+    return scene, max(1, round(CONTACT_SECONDS[name.rstrip("0123456789")] / dt))

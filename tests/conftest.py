@@ -62,7 +62,7 @@ def fan_tets(vertices, faces, edge_length, path):
 
 # pytest-xdist hands out whole files in the order they were collected; the longest start
 # first, so that the processes finish together instead of one waiting on the last long file.
-LONGEST_FIRST = ["test_hard_cases.py", "test_bit_for_bit.py", "test_scenes.py", "test_energy.py", "test_solver.py", "test_coarse.py",
+LONGEST_FIRST = ["test_hard_cases.py", "test_contact_hard.py", "test_bit_for_bit.py", "test_scenes.py", "test_energy.py", "test_solver.py", "test_coarse.py",
                  "test_figures.py", "test_sleep.py", "test_readme.py", "test_bench.py", "test_cli.py", "test_compile.py"]
 
 

@@ -1,9 +1,11 @@
-"""The broad phase of contact: which surface vertices and triangles may be close (fem/implicit/contact.py).
+"""The broad phase of contact: which surface vertices and triangles, and which surface edges, may
+be close (fem/implicit/contact.py).
 
 A uniform grid hashed into `table_size` buckets (Teschner et al. 2003), rebuilt at every
 search in three parallel passes and one prefix sum. A cell is at least as wide as every
 triangle's box grown by the search radius, so each triangle lies in at most 8 cells and a
-vertex only looks in its own: O(n) work for n surface vertices and triangles.
+vertex only looks in its own, an edge in the (at most 8) its box touches: O(n) work for n
+surface vertices, edges and triangles.
 
 Fields (t triangles of the capacity):
     cell ()                 the cells' width, m
@@ -50,6 +52,25 @@ def closest_weights(p, a, b, c):
         total = va + vb + vc
         w = ti.Vector([va / total, vb / total, vc / total])
     return w
+
+
+@ti.func
+def segment_weights(a0, a1, b0, b1):
+    """(s, t): the closest points a0 + s (a1 - a0) and b0 + t (b1 - b0) of two segments
+    (Ericson, Real-Time Collision Detection, 5.1.9); parallel ones take s = 0 or its clamp."""
+    d1, d2, r = a1 - a0, b1 - b0, a0 - b0
+    a, e, f = d1.dot(d1), d2.dot(d2), d2.dot(r)
+    c, b = d1.dot(r), d1.dot(d2)
+    denom = a * e - b * b
+    s = 0.0
+    if denom > 1e-6 * a * e:                                  # not parallel
+        s = ti.min(ti.max((b * f - c * e) / denom, 0.0), 1.0)
+    t = (b * s + f) / e
+    if t < 0.0:
+        t, s = 0.0, ti.min(ti.max(-c / a, 0.0), 1.0)
+    elif t > 1.0:
+        t, s = 1.0, ti.min(ti.max((b - c) / a, 0.0), 1.0)
+    return s, t
 
 
 @ti.data_oriented
@@ -99,7 +120,8 @@ class BroadPhase:
 
     @ti.func
     def find_pairs(self, x: ti.template(), radius):
-        """pairs <- every (surface vertex, triangle not containing it) closer than radius at x."""
+        """pairs <- every (surface vertex, triangle not containing it) and every (surface edge,
+        edge sharing no vertex with it) closer than radius at x."""
         nt = self.contact.triangle_count[None]
         self.cell[None] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
@@ -148,14 +170,48 @@ class BroadPhase:
                 if (t != i).all() and (c >= lo).all() and (c <= hi).all():
                     w = closest_weights(x[i], x[t[0]], x[t[1]], x[t[2]])
                     if (x[i] - (w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]])).norm() < radius:
-                        slot_out = ti.atomic_add(self.contact.pair_count[None], 1)
-                        if slot_out < ti.static(self.contact.pair_capacity):
-                            self.contact.pairs[slot_out] = ti.Vector([i, k])
-                        else:
-                            self.contact.overflow[None] = 1
+                        self.add_pair(i, k)
+        ti.loop_config(serialize=self.serial_vertices)
+        for e in range(self.contact.edge_count[None]):       # edge-edge: the pair (e, f), e < f, once
+            self.edge_pairs(x, e, radius)
         ti.loop_config(serialize=True)
         for _ in range(1):
             self.contact.pair_count[None] = ti.min(self.contact.pair_count[None], ti.static(self.contact.pair_capacity))
+
+    @ti.func
+    def add_pair(self, first, second):
+        slot = ti.atomic_add(self.contact.pair_count[None], 1)
+        if slot < ti.static(self.contact.pair_capacity):
+            self.contact.pairs[slot] = ti.Vector([first, second])
+        else:
+            self.contact.overflow[None] = 1
+
+    @ti.func
+    def edge_pairs(self, x: ti.template(), e, radius):
+        """The edge-edge pairs (-e - 1, f) of surface edge e with the edges f > e closer than radius
+        that share no vertex with it. The point of e closest to f lies in e's box and in the grown
+        box of every triangle of f, so in a cell of both: the first such cell (max of the two lowest)
+        finds the pair, and only the triangle that owns f (`edge_owner`) reports it."""
+        ea = self.contact.edges[e]
+        a0, a1 = x[ea[0]], x[ea[1]]
+        lo_e, hi_e = self.cell_of(ti.min(a0, a1)), self.cell_of(ti.max(a0, a1))
+        for i, j, l in ti.ndrange(2, 2, 2):               # a cell is wider than any edge: 2 a side
+            c = lo_e + ti.Vector([i, j, l])
+            if (c <= hi_e).all():
+                b = self.bucket(c)
+                for slot in range(self.cell_start[b], self.cell_start[b + 1]):
+                    k = self.cell_triangles[slot]
+                    lo, hi = self.triangle_cells(x, k, radius)
+                    if (c >= lo).all() and (c <= hi).all() and (c == ti.max(lo, lo_e)).all():
+                        for side in ti.static(range(3)):
+                            f = self.contact.triangle_edges[k][side]
+                            fb = self.contact.edges[f]
+                            apart = fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]
+                            if f > e and apart and self.contact.edge_owner[f] == 3 * k + side:
+                                b0, b1 = x[fb[0]], x[fb[1]]
+                                s, t = segment_weights(a0, a1, b0, b1)
+                                if ((a0 + s * (a1 - a0)) - (b0 + t * (b1 - b0))).norm() < radius:
+                                    self.add_pair(-e - 1, f)
 
     @ti.func
     def find_islands(self):
@@ -169,8 +225,8 @@ class BroadPhase:
             while changed:
                 changed = 0
                 for q in range(self.contact.pair_count[None]):
-                    ids = self.contact.vertices(q)
-                    a, c = self.model.vertex_body[ids[0]], self.model.vertex_body[ids[1]]
+                    ids = self.contact.vertices(q)[0]
+                    a, c = self.model.vertex_body[ids[0]], self.model.vertex_body[ids[3]]
                     low = ti.min(self.island[a], self.island[c])
                     if self.island[a] != low or self.island[c] != low:
                         self.island[a], self.island[c], changed = low, low, 1

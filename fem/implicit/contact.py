@@ -1,8 +1,11 @@
 """Contact between bodies, and of a body with itself: an energy inside E(v) (method.md, section 6).
 
 Each surface vertex p and each surface triangle t = (t0, t1, t2) that does not contain it, of
-another body or of the same one, are a pair. With d = |p - c| the distance from p to the
-closest point c = sum_j w_j t_j of the triangle (w_j its barycentric weights), the pair stores
+another body or of the same one, are a pair; so are two surface edges that share no vertex (a
+thin plate's edge can cut through a block's edge with no vertex of either inside the other).
+With d = |r| the distance between the pair's closest points (`points_gap`: r = p - sum_j w_j t_j,
+w the barycentric weights of the triangle's point closest to p; for edges r = a(s) - b(t)), the
+pair stores
 
     C(x) = -k m_p (d_hat - d)^2 ln(d / d_hat)  for d < d_hat,   k = CONTACT_STIFFNESS / dt^2   (J)
 
@@ -39,26 +42,30 @@ Fields (n vertices, t triangles of the capacity, P pairs):
     friction ()            mu, Coulomb's coefficient between bodies
     reach ()               m: the most a line search moves a vertex before its step is cut
     island (bodies,)       the lowest body id joined to a body by candidate pairs (the broad phase's)
-    pairs (P, 2)           candidate (vertex, triangle) pairs of the current search
-    pair_weights (P, 4)    (1, -w0, -w1, -w2) at the last evaluation
-    pair_matrix (P, 3x3)   h^2 k m_p n n^T while touching, else 0 (kg/s)
-    sticks (P, 2)          the step's friction pairs, lagged: (vertex, triangle)
+    edges (e, 2)           the surface edges (sorted vertex ids); triangle_edges (t, 3) each triangle's
+                           sides (j, j + 1) as edge ids; edge_owner (e,) 3 k + j of its first side
+    pairs (P, 2)           candidate pairs of the current search: (vertex, triangle), or
+                           (-e - 1, f) for edges e < f (`corners`)
+    pair_weights (P, 4)    c at the last evaluation (`points_gap`)
+    pair_matrix (P, 3x3)   h^2 k m_p b"(d) n n^T while touching, else 0 (kg/s)
+    sticks (P, 2)          the step's friction pairs, lagged, as pairs
     stick_weights, stick_normal, stick_force (lambda, N), stick_matrix (friction's Hessian, kg/s)
     force (n, 3)           -grad of the contact and friction terms at the last evaluation, N s
     product (n, 3)         (their Hessian) u of the last product pass, N s
     block (n, 3x3)         their Hessian's diagonal blocks, for the preconditioner (kg/s)
-    energy (n,)            each vertex's share of the contact energy (half of each pair to its
+    energy (n,)            each vertex's share of the contact energy (half of each pair to either
                            vertex, half to its triangle's), J, float64: the safeguards' per-body sums
 """
 
 import numpy as np
 import taichi as ti
 
-from fem.implicit.broad_phase import BroadPhase, closest_weights
+from fem.implicit.broad_phase import BroadPhase, closest_weights, segment_weights
 from fem.implicit.effects import friction_shape
 
 SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
 PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
+MOLLIFIER = 1e-3             # edges closer to parallel than sin^2 = this fade out (`Contact.mollifier`)
 ADVANCES = 32                # additive CCD's conservative advances per pair and line search
 TOUCHING = 1e-9              # m: pairs closer than this cannot be kept apart by a step bound
 
@@ -76,6 +83,40 @@ def barrier(d, d_hat):
     return phi, e * (e / d - 2.0 * log), 4.0 * e / d + e * e / (d * d) - 2.0 * log
 
 
+@ti.func
+def points_gap(p0, p1, p2, p3, edge):
+    """(d, n, weights c) of a pair: d = |r| and n = r / d, r = sum_a c_a p_a the vector between its
+    closest points. A vertex p0 and a triangle (p1, p2, p3): c = (1, -w0, -w1, -w2), w the
+    closest point's barycentric weights; edges (p0, p1) and (p2, p3): c = (1 - s, s, -(1 - t), -t).
+    Touching (d <= TOUCHING), n is the triangle's normal or the edges' cross product."""
+    c = ti.Vector([0.0, 0.0, 0.0, 0.0])
+    n = ti.Vector([0.0, 0.0, 0.0])
+    if edge:
+        s, t = segment_weights(p0, p1, p2, p3)
+        c = ti.Vector([1.0 - s, s, t - 1.0, -t])
+        n = (p1 - p0).cross(p3 - p2)
+    else:
+        w = closest_weights(p0, p1, p2, p3)
+        c = ti.Vector([1.0, -w[0], -w[1], -w[2]])
+        n = (p2 - p1).cross(p3 - p1)
+    r = c[0] * p0 + c[1] * p1 + c[2] * p2 + c[3] * p3
+    d = r.norm()
+    n = n / ti.max(n.norm(), 1e-30)
+    if d > TOUCHING:
+        n = r / d
+    return d, n, c
+
+
+@ti.func
+def closing_bound(u0, u1, u2, u3, edge):
+    """The most a pair's gap can change when its points move by u0..u3: |u0| + max(|u1|, |u2|, |u3|)
+    (a vertex and a triangle), max(|u0|, |u1|) + max(|u2|, |u3|) (two edges)."""
+    bound = u0.norm() + ti.max(u1.norm(), u2.norm(), u3.norm())
+    if edge:
+        bound = ti.max(u0.norm(), u1.norm()) + ti.max(u2.norm(), u3.norm())
+    return bound
+
+
 @ti.data_oriented
 class Contact:
     """The contact pairs of one model: broad phase, energy, gradient, Hessian products."""
@@ -89,6 +130,10 @@ class Contact:
         self.triangle_count = ti.field(ti.i32, ())
         self.surface = ti.field(ti.i32, n)
         self.surface_count = ti.field(ti.i32, ())
+        self.edges = ti.Vector.field(2, ti.i32, 3 * t // 2 + 3)
+        self.edge_count = ti.field(ti.i32, ())
+        self.triangle_edges = ti.Vector.field(3, ti.i32, t)
+        self.edge_owner = ti.field(ti.i32, 3 * t // 2 + 3)
         self.distance = ti.field(float, ())
         self.friction = ti.field(float, ())
         self.reach = ti.field(float, ())
@@ -122,6 +167,12 @@ class Contact:
         self.model.write(self.triangles, triangles)
         self.model.write(self.surface, surface)
         self.triangle_count[None], self.surface_count[None] = len(triangles), len(surface)
+        sides = np.sort(np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2), axis=2).reshape(-1, 2)
+        edges, first, side_edge = np.unique(sides, axis=0, return_index=True, return_inverse=True)
+        self.model.write(self.edges, edges.astype(np.int32))
+        self.model.write(self.triangle_edges, side_edge.reshape(-1, 3).astype(np.int32))
+        self.model.write(self.edge_owner, first.astype(np.int32))          # side 3 k + j of triangle k
+        self.edge_count[None] = len(edges)
         rest = self.model.rest_positions_np
         edges = np.linalg.norm(rest[triangles] - rest[np.roll(triangles, 1, axis=1)], axis=2)
         self.reach[None] = max(float(edges.mean()), 4.0 * contact.distance)
@@ -131,22 +182,55 @@ class Contact:
     # ------------------------------------------------------------ one pair
 
     @ti.func
-    def vertices(self, q):
-        """The pair's four vertices: (p, t0, t1, t2)."""
-        t = self.triangles[self.pairs[q][1]]
-        return ti.Vector([self.pairs[q][0], t[0], t[1], t[2]])
+    def corners(self, pair):
+        """A pair's four vertices and its kind: (p, t0, t1, t2), 0 for a vertex and a triangle
+        (pair = (p, triangle)); (a0, a1, b0, b1), 1 for two edges (pair = (-e - 1, f))."""
+        ids, edge = ti.Vector([0, 0, 0, 0]), int(pair[0] < 0)
+        if edge:
+            a, b = self.edges[-pair[0] - 1], self.edges[pair[1]]
+            ids = ti.Vector([a[0], a[1], b[0], b[1]])
+        else:
+            t = self.triangles[pair[1]]
+            ids = ti.Vector([pair[0], t[0], t[1], t[2]])
+        return ids, edge
 
     @ti.func
-    def gap(self, x: ti.template(), ids):
-        """(d, n, weights (1, -w0, -w1, -w2)) of the pair with vertices ids at x."""
-        p, a, b, c = x[ids[0]], x[ids[1]], x[ids[2]], x[ids[3]]
-        w = closest_weights(p, a, b, c)
-        r = p - (w[0] * a + w[1] * b + w[2] * c)
-        d = r.norm()
-        n = (b - a).cross(c - a).normalized()                 # touching: the triangle's normal
-        if d > TOUCHING:
-            n = r / d
-        return d, n, ti.Vector([1.0, -w[0], -w[1], -w[2]])
+    def vertices(self, q):
+        """Candidate pair q's four vertices and kind (`corners`)."""
+        return self.corners(self.pairs[q])
+
+    @ti.func
+    def gap(self, x: ti.template(), ids, edge):
+        """`points_gap` of the pair with vertices ids, of kind edge, at x."""
+        return points_gap(x[ids[0]], x[ids[1]], x[ids[2]], x[ids[3]], edge)
+
+    @ti.func
+    def mollifier(self, x: ti.template(), ids, edge):
+        """IPC's mollifier of an edge-edge pair (Li et al. 2020), which fades its energy out as the
+        edges turn parallel, where their closest points jump and d has no gradient:
+        m(y) = (2 - y / eps) y / eps below eps, 1 above, y = |e0 x e1|^2, eps = MOLLIFIER
+        |E0|^2 |E1|^2 (rest lengths). Returns (m, m'(y), grad_e0 y, grad_e1 y); (1, 0, 0, 0) for a
+        vertex and a triangle."""
+        mol, slope = 1.0, 0.0
+        grad0, grad1 = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
+        if edge:
+            e0, e1 = x[ids[1]] - x[ids[0]], x[ids[3]] - x[ids[2]]
+            r = ti.static(self.model.rest_positions)
+            eps = ti.static(MOLLIFIER) * (r[ids[1]] - r[ids[0]]).norm_sqr() * (r[ids[3]] - r[ids[2]]).norm_sqr()
+            cross = e0.cross(e1)
+            y = cross.norm_sqr()
+            if y < eps:
+                mol, slope = (2.0 - y / eps) * y / eps, (2.0 - 2.0 * y / eps) / eps
+                grad0, grad1 = 2.0 * e1.cross(cross), 2.0 * cross.cross(e0)
+        return mol, slope, grad0, grad1
+
+    @ti.func
+    def pair_mass(self, ids, edge):
+        """m_p: the vertex's mass, or the mean of the two edges' four (kg)."""
+        m = self.model.mass[ids[0]]
+        if edge:
+            m = 0.25 * (m + self.model.mass[ids[1]] + self.model.mass[ids[2]] + self.model.mass[ids[3]])
+        return m
 
     @ti.func
     def scatter(self, out: ti.template(), ids, weights, f):
@@ -166,22 +250,29 @@ class Contact:
         d_hat = self.distance[None]
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
-            ids = self.vertices(q)
-            d, n, c = self.gap(x, ids)
-            km = self.effects.contact_stiffness[None] * self.model.mass[ids[0]]
+            ids, edge = self.vertices(q)
+            d, n, c = self.gap(x, ids, edge)
+            km = self.effects.contact_stiffness[None] * self.pair_mass(ids, edge)
             A = ti.Matrix.zero(float, 3, 3)
             if d < d_hat:
                 phi, push, curve = barrier(d, d_hat)
-                body_E[self.model.vertex_body[ids[0]]] += ti.cast(km, ti.f64) * phi
-                self.scatter(self.force, ids, c, h * km * push * n)
-                A = h * h * km * curve * n.outer_product(n)
+                mol, slope, grad0, grad1 = self.mollifier(x, ids, edge)
+                body_E[self.model.vertex_body[ids[0]]] += ti.cast(km * mol, ti.f64) * phi
+                self.scatter(self.force, ids, c, h * km * mol * push * n)
+                if edge:                                       # -h grad of the mollifier's factor
+                    f0, f1 = h * km * ti.cast(phi, float) * slope * grad0, h * km * ti.cast(phi, float) * slope * grad1
+                    ti.atomic_add(self.force[ids[0]], f0)
+                    ti.atomic_sub(self.force[ids[1]], f0)
+                    ti.atomic_add(self.force[ids[2]], f1)
+                    ti.atomic_sub(self.force[ids[3]], f1)
+                A = h * h * km * mol * curve * n.outer_product(n)
                 for a in ti.static(range(4)):
                     self.block[ids[a]] += c[a] * c[a] * A
             self.pair_weights[q], self.pair_matrix[q] = c, A
         mu = self.friction[None]
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.stick_count[None] * (mu > 0)):
-            ids = self.stick_vertices(q)
+            ids = self.stick_vertices(q)[0]
             c, n = self.stick_weights[q], self.stick_normal[q]
             u = c[0] * v[ids[0]] + c[1] * v[ids[1]] + c[2] * v[ids[2]] + c[3] * v[ids[3]]
             u -= u.dot(n) * n                                  # tangential relative velocity
@@ -201,8 +292,7 @@ class Contact:
 
     @ti.func
     def stick_vertices(self, q):
-        t = self.triangles[self.sticks[q][1]]
-        return ti.Vector([self.sticks[q][0], t[0], t[1], t[2]])
+        return self.corners(self.sticks[q])
 
     @ti.func
     def product_pass(self, z: ti.template(), p: ti.template(), beta, on):
@@ -213,14 +303,14 @@ class Contact:
             self.product[i] = ti.Vector.zero(float, 3)
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None] * on):
-            ids, c = self.vertices(q), self.pair_weights[q]
+            ids, c = self.vertices(q)[0], self.pair_weights[q]
             s = ti.Vector.zero(float, 3)
             for a in ti.static(range(4)):
                 s += c[a] * (z[ids[a]] + beta * p[ids[a]])
             self.scatter(self.product, ids, c, self.pair_matrix[q] @ s)
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.stick_count[None] * on * (self.friction[None] > 0)):
-            ids, c = self.stick_vertices(q), self.stick_weights[q]
+            ids, c = self.stick_vertices(q)[0], self.stick_weights[q]
             s = ti.Vector.zero(float, 3)
             for a in ti.static(range(4)):
                 s += c[a] * (z[ids[a]] + beta * p[ids[a]])
@@ -241,14 +331,28 @@ class Contact:
         self.stick_count[None] = 0
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
-            ids = self.vertices(q)
-            d, n, c = self.gap(x, ids)
+            ids, edge = self.vertices(q)
+            d, n, c = self.gap(x, ids, edge)
             if d < d_hat:
                 k = ti.atomic_add(self.stick_count[None], 1)
                 self.sticks[k] = self.pairs[q]
                 self.stick_weights[k], self.stick_normal[k] = c, n
-                self.stick_force[k] = self.effects.contact_stiffness[None] * self.model.mass[ids[0]] * barrier(d, d_hat)[1]
+                self.stick_force[k] = self.effects.contact_stiffness[None] * self.pair_mass(ids, edge) * barrier(d, d_hat)[1] \
+                    * self.mollifier(x, ids, edge)[0]
         self.evaluate(x, v, h, body_E)            # (body_E is the energy pass's to fill: it starts it anew)
+
+    @ti.kernel
+    def clear_forces(self):
+        """force <- 0: the pairs push nothing into the acceleration a_n at a step's start where the
+        history is fresh (the gradient pass reads force from the last energy pass: the last step's,
+        or another scene's). Like the ground's deep vertices (Effects.release_deep): a body placed
+        1 mm into d_hat feels 3,000 m/s^2 there (the barrier is 1000 times a vertex's inertia over
+        a step), which the step's minimisation turns into a push, but which a history started from
+        it would carry into every later step (a box placed so on another was sent back by the
+        safeguard at every step)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            self.force[i] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def hold_start(self, x0: ti.template(), x: ti.template(), v: ti.template(), x_n: ti.template(), h: float):
@@ -266,11 +370,10 @@ class Contact:
         self.step_limit[None] = float(self.largest_move[None] <= self.reach[None])
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
-            ids = self.vertices(q)
-            move = (x[ids[0]] - x_n[ids[0]]).norm() + ti.max((x[ids[1]] - x_n[ids[1]]).norm(),
-                                                             (x[ids[2]] - x_n[ids[2]]).norm(),
-                                                             (x[ids[3]] - x_n[ids[3]]).norm())
-            if move > SAFETY * self.gap(x_n, ids)[0]:
+            ids, edge = self.vertices(q)
+            move = closing_bound(x[ids[0]] - x_n[ids[0]], x[ids[1]] - x_n[ids[1]],
+                                 x[ids[2]] - x_n[ids[2]], x[ids[3]] - x_n[ids[3]], edge)
+            if move > SAFETY * self.gap(x_n, ids, edge)[0]:
                 self.step_limit[None] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None] * (self.step_limit[None] < 1.0)):
@@ -295,12 +398,12 @@ class Contact:
         self.step_limit[None] = limit
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
-            ids = self.vertices(q)
-            ti.atomic_min(self.step_limit[None], self.time_of_impact(x, d, h, ids, limit))
+            ids, edge = self.vertices(q)
+            ti.atomic_min(self.step_limit[None], self.time_of_impact(x, d, h, ids, edge, limit))
         return self.step_limit[None]
 
     @ti.func
-    def time_of_impact(self, x: ti.template(), d: ti.template(), h, ids, limit):
+    def time_of_impact(self, x: ti.template(), d: ti.template(), h, ids, edge, limit):
         """The largest a <= limit along x + a h d that keeps the pair at least (1 - SAFETY) of its
         gap apart: additive CCD (Li et al. 2021). The four points move by h d less their mean, so
         the gap closes at most `move` a; the search advances by SAFETY gap(a) / move while the gap
@@ -310,17 +413,15 @@ class Contact:
         u = ti.Vector.zero(float, 3, 4)
         for a in ti.static(range(4)):
             u[:, a] = h * (d[ids[a]] - mean)
-        move = u[:, 0].norm() + ti.max(u[:, 1].norm(), u[:, 2].norm(), u[:, 3].norm())
-        gap0 = self.gap(x, ids)[0]
+        move = closing_bound(u[:, 0], u[:, 1], u[:, 2], u[:, 3], edge)
+        gap0 = self.gap(x, ids, edge)[0]
         t, result = 0.0, limit
         if gap0 > TOUCHING and move * limit > SAFETY * gap0:
             gap = gap0
             for _ in range(ADVANCES):
                 s = t + SAFETY * gap / move                   # the gap closes at most SAFETY of itself
-                p, a, b, c = (x[ids[0]] + s * u[:, 0], x[ids[1]] + s * u[:, 1],
-                              x[ids[2]] + s * u[:, 2], x[ids[3]] + s * u[:, 3])
-                w = closest_weights(p, a, b, c)
-                gap = (p - (w[0] * a + w[1] * b + w[2] * c)).norm()
+                gap = points_gap(x[ids[0]] + s * u[:, 0], x[ids[1]] + s * u[:, 1],
+                                 x[ids[2]] + s * u[:, 2], x[ids[3]] + s * u[:, 3], edge)[0]
                 if t > 0 and gap < (1.0 - SAFETY) * gap0:     # as close as it may come: stop at t
                     break
                 t = s
@@ -359,30 +460,32 @@ class Contact:
         d_hat = self.distance[None]
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
-            ids = self.vertices(q)
-            d, n, c = self.gap(x, ids)
+            ids, edge = self.vertices(q)
+            d, n, c = self.gap(x, ids, edge)
             if d < d_hat:
-                km = ti.cast(self.effects.contact_stiffness[None] * self.model.mass[ids[0]], ti.f64)
-                e = 0.5 * km * barrier(d, d_hat)[0]
-                self.energy[ids[0]] += e
-                for a in ti.static(range(1, 4)):
-                    self.energy[ids[a]] -= ti.cast(c[a], ti.f64) * e
+                km = ti.cast(self.effects.contact_stiffness[None] * self.pair_mass(ids, edge), ti.f64)
+                e = 0.5 * km * barrier(d, d_hat)[0] * ti.cast(self.mollifier(x, ids, edge)[0], ti.f64)
+                for a in ti.static(range(4)):                  # half to each side, by its weights
+                    self.energy[ids[a]] += ti.abs(ti.cast(c[a], ti.f64)) * e
 
     @ti.kernel
     def measure(self, x: ti.template()):
         """smallest <- the smallest pair distance at x (m; d_hat + 1 without pairs); touching <-
-        the pairs closer than d_hat; crossing <- those whose vertex is behind its triangle (inside
-        the other side's surface), interpenetrating."""
+        the pairs closer than d_hat; crossing <- those of two bodies whose vertex is behind its
+        triangle (inside the other body's surface), interpenetrating. (Within one body a vertex
+        behind its own surface is inside its own body: a plate squashed to d_hat has its top
+        vertices that close behind its bottom triangles.)"""
         d_hat = self.distance[None]
         self.smallest[None], self.touching[None], self.crossing[None] = d_hat + 1.0, 0, 0
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
-            ids = self.vertices(q)
-            d, n, c = self.gap(x, ids)
+            ids, edge = self.vertices(q)
+            d, n, c = self.gap(x, ids, edge)
             ti.atomic_min(self.smallest[None], d)
             if d < d_hat:
                 self.touching[None] += 1
                 a, b, e = x[ids[1]], x[ids[2]], x[ids[3]]
                 inside_face = c[1] < 0 and c[2] < 0 and c[3] < 0      # closest to the face, not an edge
-                if inside_face and (x[ids[0]] - a).dot((b - a).cross(e - a)) < 0:
+                other = self.model.vertex_body[ids[0]] != self.model.vertex_body[ids[1]]
+                if not edge and other and inside_face and (x[ids[0]] - a).dot((b - a).cross(e - a)) < 0:
                     self.crossing[None] += 1

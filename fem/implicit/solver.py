@@ -236,6 +236,8 @@ class ImplicitSolver:
         if self.switches.ground:
             self.effects.start_contacts(x_n, p.x, h, dt)
             self.effects.release_deep()
+        if self.switches.contact:
+            self.effects.contact.clear_forces()
         p.gradient(p.v0, p.x, p.v, h, 1.0, False)
         self.store_acceleration(self.history.acceleration(), h)
 

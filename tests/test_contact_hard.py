@@ -1,0 +1,97 @@
+"""Contact's hard cases (scenes/hard_cases.py, `contact_case`): a thin plate hitting a block at 10
+and 100 m/s, a stack of 5 boxes, a box thrown into a resting stack, in f32 and f64, dt 0.001 to
+0.1 s. No step ends with two bodies' surfaces overlapping (numpy, apart from the contact code:
+`overlaps` in tests/test_contact.py, winding numbers and edges through triangles), the total
+energy never rises (but at the throw's impulse), and everything stays finite."""
+
+import numpy as np
+import pytest
+
+import fem
+from scenes.hard_cases import ENERGY_TOLERANCE, THROW_TIME, contact_case
+from test_contact import overlaps
+
+RUNS = {"f64": [("plate10", 0.1), ("plate10", 0.01), ("plate10", 0.001),
+                ("plate100", 0.1), ("plate100", 0.01), ("plate100", 0.001),
+                ("stack", 0.1), ("thrown", 0.02)],
+        "f32": [("plate10", 0.01), ("plate100", 0.1), ("plate100", 0.01), ("plate100", 0.001),
+                ("stack", 0.02), ("thrown", 0.1)]}
+
+
+def run(name, dt):
+    """Steps the case; per step its overlaps, total energy, time and stats row."""
+    scene, steps = contact_case(name, dt)
+    sim = fem.Simulation(scene)
+    out = {"overlaps": [], "energy": [sim.stats()["total_energy"]], "t": [0.0], "rows": []}
+    for _ in range(steps):
+        out["rows"].append(sim.step())
+        out["overlaps"].append(overlaps(sim))
+        out["energy"].append(sim.stats()["total_energy"])
+        out["t"].append(out["rows"][-1]["t"])
+    out["x"] = sim.state.x.to_numpy()[:sim.model.n_vertices].astype(np.float64)
+    out["v"] = sim.state.v.to_numpy()[:sim.model.n_vertices].astype(np.float64)
+    out["bodies"] = sim.model.bodies
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs():
+    """Every run of RUNS, f64 first (one restart of Taichi each way)."""
+    out = {}
+    for precision, cases in RUNS.items():
+        fem.init("cpu", precision)
+        for name, dt in cases:
+            out[(name, precision, dt)] = run(name, dt)
+    fem.init("cpu", "f32")
+    return out
+
+
+CASES = [(name, precision, dt) for precision, cases in RUNS.items() for name, dt in cases]
+
+
+@pytest.mark.parametrize("name, precision, dt", CASES)
+def test_no_step_ends_with_bodies_overlapping_and_all_is_finite(runs, name, precision, dt):
+    out = runs[(name, precision, dt)]
+    assert all(row["finite"] for row in out["rows"])
+    assert np.isfinite(out["energy"]).all()
+    assert out["overlaps"] == [0] * len(out["rows"])
+    # (not the run's own `interpenetrating`, a vertex behind a triangle within d_hat: the 100 m/s
+    # plate at dt 0.1 s squashes the block under it thinner than d_hat, and there a plate vertex
+    # in front of the block's top is behind its bottom; the surfaces above do not cross)
+    assert max(row["contact_pairs"] for row in out["rows"]) > 0             # they met
+
+
+@pytest.mark.parametrize("name, precision, dt", CASES)
+def test_total_energy_never_rises_but_at_the_throw(runs, name, precision, dt):
+    out = runs[(name, precision, dt)]
+    energy, t = np.array(out["energy"]), np.array(out["t"])
+    rise = np.diff(energy) / np.abs(energy).max()
+    thrown = (t[1:] >= THROW_TIME) & (t[:-1] < THROW_TIME + 1e-9) if name == "thrown" else np.zeros(len(rise), bool)
+    assert rise[~thrown].max() <= ENERGY_TOLERANCE[precision]
+    if name == "thrown":
+        assert rise[thrown].max() > 0.1                                     # the impulse: 10 m/s
+
+
+@pytest.mark.parametrize("name, precision, dt", [c for c in CASES if c[0].startswith("plate")])
+def test_the_plate_bounces_off_the_block(runs, name, precision, dt):
+    """At the end the plate (falling at 10 or 100 m/s onto the free block) moves up relative to
+    the block: contact turned it around (no ground, no gravity). After 0.05 s in steps of 0.01 s
+    or less it is above the block; in one step of 0.1 s at 100 m/s the block wraps around it."""
+    out = runs[(name, precision, dt)]
+    block, plate = out["bodies"]
+    v, x = out["v"], out["x"]
+    assert v[plate.vertices, 1].mean() > v[block.vertices, 1].mean()
+    if dt <= 0.01 or name == "plate10":
+        assert x[plate.vertices, 1].mean() > x[block.vertices, 1].mean() + 0.2   # m: half the block and more
+
+
+@pytest.mark.parametrize("name, precision, dt", [c for c in CASES if c[0] == "stack"])
+def test_the_stack_of_five_stands(runs, name, precision, dt):
+    """After 1 s the five 0.4 m boxes (E 1e5 Pa: the lowest squashes by about 15 %, and they bounce
+    a little) still stand on each other: each centre above the one below by about a box, and over
+    it (less than half a box off)."""
+    out = runs[(name, precision, dt)]
+    centres = np.array([out["x"][b.vertices].mean(axis=0) for b in out["bodies"]])
+    rise = np.diff(centres[:, 1])
+    assert rise.min() > 0.3 and rise.max() < 0.55
+    assert np.abs(np.diff(centres[:, [0, 2]], axis=0)).max() < 0.2
