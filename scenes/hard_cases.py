@@ -230,7 +230,7 @@ def contact_case(name, dt):
         effects = Effects(contact=ContactEffect(distance=0.01))
     else:
         count = 5 if name == "stack" else 3
-        bodies = [contact_box(f"box {k}", (0.4, 0.4, 0.4), (2, 2, 2), (0.02 * k, 0.21 + 0.43 * k, 0.0))
+        bodies = [contact_box(f"box {k}", (0.4, 0.4, 0.4), (2, 2, 2), (0.005 * k, 0.21 + 0.43 * k, 0.0))
                   for k in range(count)]
         if name == "thrown":
             bodies.append(contact_box("ball", (0.3, 0.3, 0.3), (2, 2, 2), (-1.5, 0.6, 0.0)))

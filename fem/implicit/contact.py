@@ -9,7 +9,7 @@ pair stores
 
     C(x) = -k m_p (d_hat - d)^2 ln(d / d_hat)  for d < d_hat,   k = CONTACT_STIFFNESS / dt^2   (J)
 
-IPC's log barrier (Li et al. 2020, `barrier`) across a contact thickness d_hat (the scene's
+IPC's log barrier (Li et al. 2020, `barrier` in fem/implicit/pair_geometry.py) across a contact thickness d_hat (the scene's
 `distance`), with the ground's stiffness k m_p (fem/implicit/effects.py). It has no kink at d_hat
 and grows without bound as d -> 0: a penalty k m_p / 2 (d_hat - d)^2 stores at most
 k m_p d_hat^2 / 2, less than a plate at 100 m/s brings, and the step's minimisation pushed such
@@ -60,61 +60,14 @@ Fields (n vertices, t triangles of the capacity, P pairs):
 import numpy as np
 import taichi as ti
 
-from fem.implicit.broad_phase import BroadPhase, closest_weights, segment_weights
+from fem.implicit.broad_phase import BroadPhase
 from fem.implicit.effects import friction_shape
+from fem.implicit.pair_geometry import TOUCHING, barrier, closing_bound, points_gap
 
 SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
 PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
 MOLLIFIER = 1e-3             # edges closer to parallel than sin^2 = this fade out (`Contact.mollifier`)
 ADVANCES = 32                # additive CCD's conservative advances per pair and line search
-TOUCHING = 1e-9              # m: pairs closer than this cannot be kept apart by a step bound
-
-
-@ti.func
-def barrier(d, d_hat):
-    """IPC's log barrier (Li et al. 2020) of a pair at distance d < d_hat, per unit k m_p:
-    b(d) = -(d_hat - d)^2 ln(d / d_hat), float64 (m^2); the push -b'(d) = e (e / d - 2 ln(d / d_hat)),
-    e = d_hat - d (m); and the curvature b''(d) = 4 e / d + e^2 / d^2 - 2 ln(d / d_hat). It is 0 with
-    its first two derivatives at d_hat and grows without bound as d -> 0, so no minimisation brings a
-    pair together, however fast it comes (a penalty holds at most k m_p d_hat^2 / 2)."""
-    d = ti.max(d, ti.static(TOUCHING))
-    e, log = d_hat - d, ti.log(d / d_hat)
-    phi = -ti.cast(e, ti.f64) ** 2 * ti.cast(log, ti.f64)
-    return phi, e * (e / d - 2.0 * log), 4.0 * e / d + e * e / (d * d) - 2.0 * log
-
-
-@ti.func
-def points_gap(p0, p1, p2, p3, edge):
-    """(d, n, weights c) of a pair: d = |r| and n = r / d, r = sum_a c_a p_a the vector between its
-    closest points. A vertex p0 and a triangle (p1, p2, p3): c = (1, -w0, -w1, -w2), w the
-    closest point's barycentric weights; edges (p0, p1) and (p2, p3): c = (1 - s, s, -(1 - t), -t).
-    Touching (d <= TOUCHING), n is the triangle's normal or the edges' cross product."""
-    c = ti.Vector([0.0, 0.0, 0.0, 0.0])
-    n = ti.Vector([0.0, 0.0, 0.0])
-    if edge:
-        s, t = segment_weights(p0, p1, p2, p3)
-        c = ti.Vector([1.0 - s, s, t - 1.0, -t])
-        n = (p1 - p0).cross(p3 - p2)
-    else:
-        w = closest_weights(p0, p1, p2, p3)
-        c = ti.Vector([1.0, -w[0], -w[1], -w[2]])
-        n = (p2 - p1).cross(p3 - p1)
-    r = c[0] * p0 + c[1] * p1 + c[2] * p2 + c[3] * p3
-    d = r.norm()
-    n = n / ti.max(n.norm(), 1e-30)
-    if d > TOUCHING:
-        n = r / d
-    return d, n, c
-
-
-@ti.func
-def closing_bound(u0, u1, u2, u3, edge):
-    """The most a pair's gap can change when its points move by u0..u3: |u0| + max(|u1|, |u2|, |u3|)
-    (a vertex and a triangle), max(|u0|, |u1|) + max(|u2|, |u3|) (two edges)."""
-    bound = u0.norm() + ti.max(u1.norm(), u2.norm(), u3.norm())
-    if edge:
-        bound = ti.max(u0.norm(), u1.norm()) + ti.max(u2.norm(), u3.norm())
-    return bound
 
 
 @ti.data_oriented
