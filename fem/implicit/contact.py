@@ -61,7 +61,6 @@ import numpy as np
 import taichi as ti
 
 from fem.implicit.broad_phase import BroadPhase
-from fem.implicit.effects import friction_shape
 from fem.implicit.pair_geometry import TOUCHING, barrier, closing_bound, points_gap
 
 SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
@@ -213,7 +212,8 @@ class Contact:
                 body_E[self.model.vertex_body[ids[0]]] += ti.cast(km * mol, ti.f64) * phi
                 self.scatter(self.force, ids, c, h * km * mol * push * n)
                 if edge:                                       # -h grad of the mollifier's factor
-                    f0, f1 = h * km * ti.cast(phi, float) * slope * grad0, h * km * ti.cast(phi, float) * slope * grad1
+                    pull = h * km * ti.cast(phi, float) * slope
+                    f0, f1 = pull * grad0, pull * grad1
                     ti.atomic_add(self.force[ids[0]], f0)
                     ti.atomic_sub(self.force[ids[1]], f0)
                     ti.atomic_add(self.force[ids[2]], f1)
@@ -230,9 +230,7 @@ class Contact:
             u = c[0] * v[ids[0]] + c[1] * v[ids[1]] + c[2] * v[ids[2]] + c[3] * v[ids[3]]
             u -= u.dot(n) * n                                  # tangential relative velocity
             s = u.norm()
-            f0, across, along = friction_shape(s)
-            if self.effects.majorize[None]:
-                along = across
+            f0, across, along = self.effects.friction_model(s)
             lam = h * mu * self.stick_force[q]
             body_E[self.model.vertex_body[ids[0]]] += ti.cast(lam, ti.f64) * ti.cast(f0, ti.f64)
             g = lam * across

@@ -161,14 +161,21 @@ class Effects:
         km = self.contact_stiffness[None] * self.model.mass[i]
         d = ti.min(0.0, x[1] - self.plane[i])
         s = ti.Vector([v[0], v[2]]).norm()
-        _, across, along = friction_shape(s)
-        if self.majorize[None]:
-            along = across
+        _, across, along = self.friction_model(s)
         lam = h * self.friction[None] * self.normal_force[i]
         c, e = lam * across, lam * (along - across)
         tx, tz = v[0] / ti.max(s, 1e-30), v[2] / ti.max(s, 1e-30)
         self.contact_hessian[i] = ti.Vector([c + e * tx * tx, h * h * km * (d < 0.0), c + e * tz * tz, e * tx * tz])
         return ti.Vector([-c * v[0], -h * km * d, -c * v[2]])
+
+    @ti.func
+    def friction_model(self, s):
+        """`friction_shape` at speed s as Newton's model takes it: while `majorize` is on, the
+        curvature along the slide is the one across it (the ground's and the pairs' friction)."""
+        f0, across, along = friction_shape(s)
+        if self.majorize[None]:
+            along = across
+        return f0, across, along
 
     @ti.func
     def contact_product(self, i, u: ti.template()):
