@@ -120,6 +120,7 @@ class Simulation:
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
         self.last = {}
         self.contact_record = {"most_pairs": 0, "smallest_distance": None, "interpenetrating_steps": 0}
+        self.contact_points = np.zeros((0, 3))
 
     @property
     def settings(self):
@@ -169,9 +170,13 @@ class Simulation:
     def contact_stats(self):
         """Contact between bodies now (fem/implicit/contact.py): contact_pairs, the pairs closer than
         the contact distance; smallest_distance (m, None without a pair near); interpenetrating, the
-        pairs whose vertex is behind its triangle's face. Also kept over the run in contact_record."""
+        pairs whose vertex is behind its triangle's face. Also kept over the run in contact_record;
+        contact_points (k, 3), m, the midpoints of the touching pairs' closest points, for pictures."""
         contact = self.solver.effects.contact
-        contact.measure(self.state.x)
+        points = np.zeros((max(int(contact.pair_count[None]), 1), 3))
+        contact.measure(self.state.x, points)
+        points = points[:int(contact.touching[None])]
+        self.contact_points = points[np.lexsort(points.T[::-1])]         # in one order, run after run
         smallest = float(contact.smallest[None])
         row = {"contact_pairs": int(contact.touching[None]),
                "smallest_distance": smallest if smallest <= float(contact.distance[None]) else None,

@@ -420,12 +420,13 @@ class Contact:
                     self.energy[ids[a]] += ti.abs(ti.cast(c[a], ti.f64)) * e
 
     @ti.kernel
-    def measure(self, x: ti.template()):
+    def measure(self, x: ti.template(), points: ti.types.ndarray()):
         """smallest <- the smallest pair distance at x (m; d_hat + 1 without pairs); touching <-
-        the pairs closer than d_hat; crossing <- those of two bodies whose vertex is behind its
-        triangle (inside the other body's surface), interpenetrating. (Within one body a vertex
-        behind its own surface is inside its own body: a plate squashed to d_hat has its top
-        vertices that close behind its bottom triangles.)"""
+        the pairs closer than d_hat, the first rows of points (k, 3) the midpoints of their closest
+        points (m); crossing <- those of two bodies whose vertex is behind its triangle (inside the
+        other body's surface), interpenetrating. (Within one body a vertex behind its own surface
+        is inside its own body: a plate squashed to d_hat has its top vertices that close behind
+        its bottom triangles.)"""
         d_hat = self.distance[None]
         self.smallest[None], self.touching[None], self.crossing[None] = d_hat + 1.0, 0, 0
         ti.loop_config(serialize=self.serial_vertices)
@@ -434,8 +435,12 @@ class Contact:
             d, n, c = self.gap(x, ids, edge)
             ti.atomic_min(self.smallest[None], d)
             if d < d_hat:
-                self.touching[None] += 1
+                k = ti.atomic_add(self.touching[None], 1)
                 a, b, e = x[ids[1]], x[ids[2]], x[ids[3]]
+                if k < points.shape[0]:                   # c[0] x0 + c[1] x1: the first side's point
+                    for j in ti.static(range(3)):
+                        points[k, j] = c[0] * x[ids[0]][j] + c[1] * x[ids[1]][j] * edge - 0.5 * (
+                            c[0] * x[ids[0]][j] + c[1] * a[j] + c[2] * b[j] + c[3] * e[j])
                 inside_face = c[1] < 0 and c[2] < 0 and c[3] < 0      # closest to the face, not an edge
                 other = self.model.vertex_body[ids[0]] != self.model.vertex_body[ids[1]]
                 if not edge and other and inside_face and (x[ids[0]] - a).dot((b - a).cross(e - a)) < 0:
