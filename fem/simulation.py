@@ -100,12 +100,28 @@ class Simulation:
         for b, body in enumerate(self.model.bodies):
             quiet_speed = max(QUIET_MOTION * body.size / self.settings.dt, FRICTION_SPEED * creep[b])
             quiet = self.awake[b] and speed[b] <= quiet_speed
+            self.quiet_speeds[b] = quiet_speed
             self.quiet[b] = self.quiet[b] + 1 if quiet else 0
             if self.quiet[b] >= QUIET_STEPS:
                 self.awake[b], fell = False, True
                 self.solver.sleep.hold(self.state.v, body.vertices.start, body.vertices.stop)
         if fell:
             self.solver.wake(self.awake)
+
+    def wake_the_hit(self, dt):
+        """Before a step with contact: wake each sleeping body that a moving one can reach in it
+        (closer than d_hat + 2 dt |v|max), so that it is pushed rather than met as a wall."""
+        if not (self.solver.switches.contact and any(self.awake) and not all(self.awake)):
+            return
+        speed = np.zeros(len(self.awake))
+        self.solver.sleep.body_speeds(self.state.v, speed)
+        speed = np.where(self.awake, np.sqrt(speed), 0.0)
+        motion = np.where(speed > self.quiet_speeds, 2, np.asarray(self.awake, np.int32)).astype(np.int32)
+        woken = np.zeros(len(self.awake), np.int32)
+        radius = float(self.solver.effects.contact.distance[None]) + 2.0 * dt * float(speed.max())
+        self.solver.effects.contact.broad.meeting(self.state.x, radius, motion, woken)
+        if woken.any():
+            self.wake(np.flatnonzero(woken).tolist())
 
     # ------------------------------------------------------------ running
 
@@ -115,6 +131,7 @@ class Simulation:
         self.solver.reset()
         self.awake = [True] * len(self.model.bodies)
         self.quiet = [0] * len(self.model.bodies)
+        self.quiet_speeds = np.zeros(len(self.model.bodies))     # m/s: slower, a body is quiet
         self.t = 0.0
         self.steps = 0
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
@@ -143,6 +160,7 @@ class Simulation:
         while self.pending and self.pending[0][0] <= self.t + 0.5 * dt:
             _, ids, dv = self.pending.pop(0)
             self.apply_impulse(ids, dv)
+        self.wake_the_hit(dt)
         if any(self.awake):
             info = self.solver.step(self.state, self.spare, dt)
         else:                                   # everything sleeps: the step would change nothing

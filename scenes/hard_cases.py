@@ -24,21 +24,21 @@ DAMPING = Effects(alpha=0.1, beta=0.1)       # the coursework's Rayleigh damping
 
 # ---------------------------------------------------------------- meshes
 
-def cube(cells=2, size=(1.0, 1.0, 1.0)):
+def cube(cells=2, size=(1.0, 1.0, 1.0), keep=None):
     """A box of `size` m centred at the origin, cells^3 (or cells = (nx, ny, nz)) cubes of 6 tets
-    each (Kuhn split)."""
+    each (Kuhn split); only the cubes (i, j, k) where keep(i, j, k) is true, if given."""
     n = np.broadcast_to(cells, 3)
     axes = [np.linspace(-s / 2, s / 2, c + 1) for s, c in zip(size, n)]
     X = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
     index = np.arange(np.prod(n + 1)).reshape(tuple(n + 1))
     kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
     tets = []
-    for i in range(n[0]):
-        for j in range(n[1]):
-            for k in range(n[2]):
-                corner = [index[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-                tets += [[corner[t] for t in tet] for tet in kuhn]
-    return prepare_mesh(X, np.array(tets), f"cube(cells={cells}, size={size})")
+    for i, j, k in np.ndindex(*n):
+        if keep is None or keep(i, j, k):
+            corner = [index[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+            tets += [[corner[t] for t in tet] for tet in kuhn]
+    used, tets = np.unique(tets, return_inverse=True)        # drop the corners of no cube kept
+    return prepare_mesh(X[used], tets.reshape(-1, 4), f"cube(cells={cells}, size={size})")
 
 
 def sliver_tet(height=1e-3):
@@ -205,7 +205,8 @@ def groups(cases=HARD_CASES):
 # from the contact code), its total energy never rising (but at an impulse), and finite.
 # Corotational bodies of E 1e5 Pa (the plate 1e6), contact distance 0.01 m.
 CONTACT_DTS = (0.1, 0.01, 0.001)
-CONTACT_SECONDS = {"plate": 0.05, "stack": 1.0, "thrown": 0.6}
+CONTACT_SECONDS = {"plate": 0.05, "stack": 1.0, "thrown": 0.6, "fold": 0.5}
+FOLD_SPEED = 3.0                               # m/s: the hairpin's arm tips thrown towards each other
 THROW_TIME, THROW_SPEED = 0.3, 10.0          # s, m/s: the ball's impulse towards the resting pile
 
 
@@ -219,10 +220,14 @@ def contact_box(name, size, cells, position, E=1e5):
 def contact_case(name, dt):
     """A contact hard case at dt: "plate10" and "plate100" (a 4 cm plate hitting a free block at
     10 or 100 m/s, no gravity), "stack" (5 boxes of 0.4 m stacked on the ground) or "thrown"
-    (a 0.3 m box thrown at 10 m/s into a stack of 3 at THROW_TIME)."""
+    (a 0.3 m box thrown at 10 m/s into a stack of 3 at THROW_TIME) or "fold" (one U-shaped bar
+    whose arms are thrown together: it folds onto itself, self-contact)."""
     contact = ContactEffect(distance=0.01, friction=0.3)
     initial, impulses = [], []
-    if name.startswith("plate"):
+    if name == "fold":
+        bodies, initial = hairpin()
+        effects = Effects(contact=contact)
+    elif name.startswith("plate"):
         speed = float(name[len("plate"):])
         bodies = [contact_box("block", (1.0, 0.5, 1.0), (4, 2, 4), (0.0, 0.0, 0.0)),
                   contact_box("plate", (0.8, 0.04, 0.8), (4, 1, 4), (0.05, 0.5, 0.0), E=1e6)]
@@ -239,3 +244,17 @@ def contact_case(name, dt):
     scene = Scene(f"{name} dt {dt:g} s", bodies, effects=effects, solver=SolverSettings(dt=dt),
                   initial=initial, impulses=impulses)
     return scene, max(1, round(CONTACT_SECONDS[name.rstrip("0123456789")] / dt))
+
+
+def hairpin():
+    """A U of 0.6 x 0.8 x 0.2 m (cells of 0.2 m, E 1e5 Pa): a base and two arms 0.2 m apart, the
+    arms bent towards each other, their tips at FOLD_SPEED. Returns ([body], [Initial])."""
+    mesh = cube(cells=(3, 4, 1), size=(0.6, 0.8, 0.2), keep=lambda i, j, k: i != 1 or j == 0)
+    body = Body("hairpin", mesh, Material(1e5, 0.3, 1000.0), "corotational")
+    x, initial = mesh.vertices, []
+    for height in np.unique(x[:, 1]):
+        for side in (-1.0, 1.0):                 # the left arm moves right, the right one left
+            ids = np.flatnonzero((x[:, 1] == height) & (side * x[:, 0] > 0))
+            speed = FOLD_SPEED * max(height + 0.2, 0.0) / 0.6
+            initial.append(Initial(Selection(0, vertices=ids), "velocity", (np.array([-side * speed, 0.0, 0.0]),)))
+    return [body], initial

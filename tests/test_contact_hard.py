@@ -1,8 +1,9 @@
 """Contact's hard cases (scenes/hard_cases.py, `contact_case`): a thin plate hitting a block at 10
-and 100 m/s, a stack of 5 boxes, a box thrown into a resting stack, in f32 and f64, dt 0.001 to
-0.1 s. No step ends with two bodies' surfaces overlapping (numpy, apart from the contact code:
-`overlaps` in tests/test_contact.py, winding numbers and edges through triangles), the total
-energy never rises (but at the throw's impulse), and everything stays finite."""
+and 100 m/s, a stack of 5 boxes, a box thrown into a resting stack, a U-shaped bar folding onto
+itself, in f32 and f64, dt 0.001 to 0.1 s. No step ends with two bodies' surfaces overlapping or a
+body's surface through itself (numpy, apart from the contact code: `overlaps` in
+tests/test_contact.py, winding numbers and edges through triangles), the total energy never
+rises (but at the throw's impulse), and everything stays finite."""
 
 import numpy as np
 import pytest
@@ -13,9 +14,9 @@ from test_contact import overlaps
 
 RUNS = {"f64": [("plate10", 0.1), ("plate10", 0.01), ("plate10", 0.001),
                 ("plate100", 0.1), ("plate100", 0.01), ("plate100", 0.001),
-                ("stack", 0.1), ("thrown", 0.02)],
+                ("stack", 0.1), ("thrown", 0.02), ("fold", 0.1), ("fold", 0.01), ("fold", 0.001)],
         "f32": [("plate10", 0.01), ("plate100", 0.1), ("plate100", 0.01), ("plate100", 0.001),
-                ("stack", 0.02), ("thrown", 0.1)]}
+                ("stack", 0.02), ("thrown", 0.1), ("fold", 0.1), ("fold", 0.001)]}
 
 
 def run(name, dt):
@@ -95,3 +96,17 @@ def test_the_stack_of_five_stands(runs, name, precision, dt):
     rise = np.diff(centres[:, 1])
     assert rise.min() > 0.3 and rise.max() < 0.55
     assert np.abs(np.diff(centres[:, [0, 2]], axis=0)).max() < 0.2
+
+
+@pytest.mark.parametrize("name, precision, dt", [c for c in CASES if c[0] == "fold"])
+def test_the_hairpin_folds_onto_itself_and_opens_again(runs, name, precision, dt):
+    """Its arms, thrown towards each other, meet (pairs of the one body closer than d_hat: self-
+    contact) and part again: at the end their tips are further apart than d_hat and still on
+    their own sides (the arms crossed nothing)."""
+    out = runs[(name, precision, dt)]
+    assert max(row["contact_pairs"] for row in out["rows"]) > 0
+    rest = contact_case(name, dt)[0].bodies[0].mesh.vertices
+    top = rest[:, 1] > 0.39                         # the arms' top faces, 4 vertices each
+    left, right = out["x"][top & (rest[:, 0] < 0)], out["x"][top & (rest[:, 0] > 0)]
+    assert len(left) == len(right) == 4
+    assert right[:, 0].min() - left[:, 0].max() > 0.01

@@ -230,3 +230,17 @@ class BroadPhase:
                     low = ti.min(self.island[a], self.island[c])
                     if self.island[a] != low or self.island[c] != low:
                         self.island[a], self.island[c], changed = low, low, 1
+
+    @ti.kernel
+    def meeting(self, x: ti.template(), radius: float, motion: ti.types.ndarray(), woken: ti.types.ndarray()):
+        """woken[b] <- 1 for each sleeping body b (motion[b] = 0) that a moving body (motion 2; 1:
+        awake but resting) comes closer to than radius at x: a body hit wakes before the step, and
+        is pushed instead of acting as a wall. Leaves those pairs in the contact's pair list."""
+        self.find_pairs(x, radius)
+        for q in range(self.contact.pair_count[None]):
+            ids = self.contact.vertices(q)[0]
+            a, c = self.model.vertex_body[ids[0]], self.model.vertex_body[ids[3]]
+            if motion[a] == 2 and motion[c] == 0:
+                woken[c] = 1
+            if motion[c] == 2 and motion[a] == 0:
+                woken[a] = 1
