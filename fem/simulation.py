@@ -26,8 +26,9 @@ from fem.implicit.solver import StepInfo
 # A body sleeps after QUIET_STEPS steps in a row in which no vertex moved more than
 # QUIET_MOTION of the body's size: its velocities are set to 0 and steps leave it exactly
 # as it is, at no cost, until an impulse (a click), a new state, material or method wakes it.
-# A body pressed into the ground is quiet below the smoothed friction's creep speed too
-# (FRICTION_SPEED, fem/implicit/effects.py): friction holds it, up to that creep.
+# A body pressed into the ground, or touching another body (contact), is quiet below the smoothed
+# friction's creep speed too (FRICTION_SPEED, fem/implicit/effects.py): friction holds it, up to
+# that creep.
 QUIET_STEPS = 25
 QUIET_MOTION = 1e-6
 
@@ -96,6 +97,8 @@ class Simulation:
         creep = np.zeros(len(self.awake), np.int32)
         if self.solver.switches.ground:
             self.solver.effects.body_grounded(self.state.x, creep)
+        if self.solver.switches.contact:                     # resting on another body: its friction
+            self.solver.effects.contact.broad.touching(self.state.x, creep)
         fell = False
         for b, body in enumerate(self.model.bodies):
             quiet_speed = max(QUIET_MOTION * body.size / self.settings.dt, FRICTION_SPEED * creep[b])

@@ -244,3 +244,13 @@ class BroadPhase:
                 woken[c] = 1
             if motion[c] == 2 and motion[a] == 0:
                 woken[a] = 1
+
+    @ti.kernel
+    def touching(self, x: ti.template(), bodies: ti.types.ndarray()):
+        """bodies[b] <- 1 where body b has a pair of the current list closer than d_hat at x (it
+        rests on or against a body, and friction holds it there up to a creep: fem/simulation.py)."""
+        for q in range(self.contact.pair_count[None]):
+            ids, edge = self.contact.vertices(q)
+            if self.contact.gap(x, ids, edge)[0] < self.contact.distance[None]:
+                bodies[self.model.vertex_body[ids[0]]] = 1
+                bodies[self.model.vertex_body[ids[3]]] = 1
