@@ -222,6 +222,7 @@ def build_parser(prog="main.py"):
                    help="simulation steps per frame (default: what --speed and --fps ask for)")
     p.add_argument("--compare", action="store_true", help="left copy linear, right copy corotational")
     p.add_argument("--color", default="body", choices=["body", "volume", "strain"], help="colour mode")
+    p.add_argument("--contact-points", action="store_true", help="mark where bodies touch (needs contact)")
     p.add_argument("--renderer", default="auto", choices=["auto", "ggui", "software"],
                    help="auto: the built-in software renderer (same picture, no Vulkan, steady memory); "
                         "ggui: GGUI offscreen (needs Vulkan; Taichi 1.7 keeps ~250 kB per frame)")

@@ -204,6 +204,33 @@ def wait_for(condition, timeout, what):
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def quit_window(env, wid, window, log_path):
+    """Press Escape in the viewer's window and check that it ends with exit code 0."""
+    try:
+        xdotool(env, "key", "--window", wid, "Escape")
+    except subprocess.CalledProcessError:
+        # Seen twice in ~10 loaded suite runs: X said BadWindow for the id the keys before
+        # reached while the viewer ran on. Look the window up again and press Escape there.
+        # (Seen once more under load with the lookup failing too: then the key goes to the
+        # focused window, the only one on this display.)
+        try:
+            again = xdotool(env, "search", "--onlyvisible", "--name", "softfem", timeout=10).split()
+            xdotool(env, "key", "--window", again[0], "Escape")
+        except (subprocess.CalledProcessError, IndexError):
+            try:
+                xdotool(env, "key", "Escape")
+            except subprocess.CalledProcessError as failure:
+                raise AssertionError(f"{getattr(failure, 'stderr', failure)} (window exit code "
+                                     f"{window.poll()}):\n" + log_path.read_text()) from failure
+    assert window.wait(30) == 0, log_path.read_text()
+
+
+def stats_rows(path):
+    """The complete rows the viewer has streamed into its stats file so far."""
+    return [json.loads(line) for line in path.read_text().splitlines(keepends=True)
+            if line.endswith("\n")] if path.exists() else []
+
+
 def frames_after_event(folder, kind):
     """Complete stats rows streamed after the first event of `kind` (0 before it)."""
     rows = [json.loads(line) for part in folder.glob("s.jsonl")
@@ -259,26 +286,12 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
         wait_for(lambda: frames_after_event(tmp_path, "methods") >= 10, 60, "frames after the toggle")
         xdotool(env, "key", "--window", wid, "l")
         wait_for(lambda: frames_after_event(tmp_path, "preconditioner") >= 5, 60, "frames after l")
+        xdotool(env, "key", "--window", wid, "t")       # no contact here: the panel says so, nothing drawn
+        wait_for(lambda: frames_after_event(tmp_path, "contact_points") >= 5, 60, "frames after t")
         subprocess.run(["import", "-window", "root", str(tmp_path / "shot.png")], env=env,
                        check=True, timeout=30)
         log.flush()
-        try:
-            xdotool(env, "key", "--window", wid, "Escape")
-        except subprocess.CalledProcessError:
-            # Seen twice in ~10 loaded suite runs: X said BadWindow for the id the keys above
-            # reached while the viewer ran on. Look the window up again and press Escape there.
-            # (Seen once more under load with the lookup failing too: then the key goes to the
-            # focused window, the only one on this display.)
-            try:
-                again = xdotool(env, "search", "--onlyvisible", "--name", "softfem", timeout=10).split()
-                xdotool(env, "key", "--window", again[0], "Escape")
-            except (subprocess.CalledProcessError, IndexError):
-                try:
-                    xdotool(env, "key", "Escape")
-                except subprocess.CalledProcessError as failure:
-                    raise AssertionError(f"{getattr(failure, 'stderr', failure)} (window exit code "
-                                         f"{window.poll()}):\n" + (tmp_path / "view.log").read_text()) from failure
-        assert window.wait(30) == 0, (tmp_path / "view.log").read_text()
+        quit_window(env, wid, window, tmp_path / "view.log")
     finally:
         if window.poll() is None:
             window.kill()
@@ -308,6 +321,88 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
     before = {r["preconditioner"] for r in rows if r["frame"] < switched[0][0] and "preconditioner" in r}
     after = {r["preconditioner"] for r in rows if r["frame"] > switched[0][0] and "preconditioner" in r}
     assert before == {"jacobi"} and after == {"two-level"}   # auto picked block Jacobi on these small boxes
+    assert [e["shown"] for _, e in events if e["type"] == "contact_points"] == [True]
+
+
+# A box resting on a fixed block, 5 mm above it at the start: inside the contact distance (1 cm)
+# from the first step on, and it stays there.
+BOX_ON_A_BLOCK = """
+name = "box on a block"
+[solver]
+dt = 0.02
+[effects]
+gravity = [0.0, -9.81, 0.0]
+damping = { alpha = 2.0, beta = 0.0 }
+contact = { distance = 0.01, friction = 0.5 }
+[camera]
+eye = [1.6, 1.4, 2.4]
+target = [0.0, 0.45, 0.0]
+[[body]]
+name = "block"
+fixed = true
+mesh = { generator = "box", size = [1.0, 0.4, 1.0], cells = [2, 1, 2] }
+material = { E = 1e5, nu = 0.3, density = 1000.0 }
+position = [0.0, 0.2, 0.0]
+[[body]]
+name = "box"
+mesh = { generator = "box", size = [0.5, 0.5, 0.5], cells = [2, 2, 2] }
+material = { E = 1e5, nu = 0.3, density = 1000.0 }
+position = [0.0, 0.655, 0.0]
+"""
+
+
+def test_t_marks_where_the_box_touches_the_block(display, tmp_path):
+    import scenes
+    from app.render.overlay import CONTACT_COLOR
+    from app.window.viewer import initial_camera
+    from PIL import Image
+
+    scene_file = tmp_path / "box_on_a_block.toml"
+    scene_file.write_text(BOX_ON_A_BLOCK)
+    scene = scenes.load_scene(scene_file)
+    camera_ = initial_camera(np.concatenate([b.mesh.vertices for b in scene.bodies]), scene.camera,
+                             WIDTH, HEIGHT)
+    env = dict(os.environ, DISPLAY=display)
+    stats = tmp_path / "s.jsonl"
+    log = open(tmp_path / "view.log", "w")
+    window = subprocess.Popen([sys.executable, os.path.join(ROOT, "main.py"), "view", str(scene_file),
+                               "--stats", str(stats), "--size", f"{WIDTH}x{HEIGHT}", "--out", str(tmp_path)],
+                              cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
+
+    def shots():
+        return [e["path"] for row in stats_rows(stats) for e in row["events"] if e["type"] == "screenshot"]
+
+    try:
+        wid = xdotool(env, "search", "--sync", "--onlyvisible", "--name", "softfem").split()[0]
+        wait_for(lambda: any(row.get("contact_pairs") for row in stats_rows(stats)), 120, "steps in contact")
+        xdotool(env, "key", "--window", wid, "p")                    # the window's own screenshots
+        wait_for(lambda: len(shots()) == 1, 60, "the screenshot before t")
+        xdotool(env, "key", "--window", wid, "t")
+        wait_for(lambda: frames_after_event(tmp_path, "contact_points") >= 3, 60, "frames after t")
+        xdotool(env, "key", "--window", wid, "p")
+        wait_for(lambda: len(shots()) == 2, 60, "the screenshot after t")
+        log.flush()
+        quit_window(env, wid, window, tmp_path / "view.log")
+    finally:
+        if window.poll() is None:
+            window.kill()
+        log.close()
+
+    rows = stats_rows(stats)
+    assert [e["shown"] for row in rows for e in row["events"] if e["type"] == "contact_points"] == [True]
+    assert all(row["contact_pairs"] > 0 for row in rows if row["frame"] > 1)
+    before, after = (np.asarray(Image.open(path).convert("RGB")) for path in shots())
+    assert before.shape == (HEIGHT, WIDTH, 3)
+    assert not (before == CONTACT_COLOR).all(axis=-1).any()
+    ys, xs = np.nonzero((after == CONTACT_COLOR).all(axis=-1))
+    assert len(xs) > 50
+    # Every dot on the block's top (y = 0.4 m), under the box (0.5 m wide), as the window's camera
+    # sees it, give or take a dot's radius (3 pixels here) and its outline.
+    footprint = np.array([pixel_of([x, 0.4, z], camera_) for x in (-0.25, 0.25) for z in (-0.25, 0.25)])
+    lo, hi = footprint.min(axis=0) - 5, footprint.max(axis=0) + 5
+    assert lo[0] <= xs.min() and xs.max() <= hi[0] and lo[1] <= ys.min() and ys.max() <= hi[1]
+    # ... and over all of it: the dots reach its four corners.
+    assert (xs.max() - xs.min()) > 0.8 * np.ptp(footprint[:, 0])
 
 
 def test_view_without_a_display_is_one_clear_error():

@@ -9,7 +9,8 @@ compared with each other, until a body would leave the picture: then it backs
 off to frame everything seen so far, and never comes closer again. The floor is
 drawn only for a scene with a ground. --compare shows two panels, like a
 report's figure: the linear copy on the left and the corotational copy on the
-right, each seen by the same camera.
+right, each seen by the same camera. --contact-points marks where bodies touch
+(Simulation.contact_points) with dots drawn over the rendered picture, in each panel.
 
 Reproducible pictures: the engine and the software renderer are deterministic
 on the CPU, so the PNGs depend only on the scene and the arguments. Their
@@ -40,7 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image
 
 import fem
 import scenes
@@ -52,7 +53,7 @@ from app.progress import Progress
 from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
 from app.render.factory import make_renderer
-from app.render.overlay import PANEL_COLOR, TEXT_COLOR, draw_text_overlay
+from app.render.overlay import draw_labels, draw_points, draw_text_overlay
 from app.video import MACRO_BLOCK, VIDEO_FPS, VideoFailed, VideoWriter
 from fem.errors import SizeLimitError
 
@@ -117,6 +118,9 @@ def simulate_and_write(args, out: Path, video: Path | None, width: int, height: 
     """Build the simulation and the view, then write the frames into the locked folder out."""
     device.start(args)
     scene = scenes.load_scene(args.scene, overrides=args.set, contact=getattr(args, "contact", False))
+    if args.contact_points and scene.effects.contact is None:
+        raise fem.FemError(f"--contact-points: {scene.name} has no contact between bodies to show; add "
+                           "--contact, or `[effects] contact = { distance = 0.01 }` to the scene")
     sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
                          solver=args.solver, dt=args.dt, tolerance=args.tol,
                          max_iterations=args.max_iters, step=args.step,
@@ -125,7 +129,7 @@ def simulate_and_write(args, out: Path, video: Path | None, width: int, height: 
     fps = args.fps or video_rate(steps, sim.settings.dt, args.speed)
     if video is not None:
         check_video_rate(video, fps, args.fps is not None)
-    view = View(sim, scene, args.compare, args.color, args.renderer, width, height)
+    view = View(sim, scene, args.compare, args.color, args.renderer, width, height, args.contact_points)
 
     out.mkdir(parents=True, exist_ok=True)
     with outputs.FolderLock(out) as lock:
@@ -205,10 +209,11 @@ class View:
     sim: the running simulation (of scene.side_by_side() when compare);
     scene: the scene as loaded, for its camera hint and ground;
     color: a VertexColoring mode; renderer: "auto", "ggui" or "software";
-    width, height: of the whole frame, pixels.
+    width, height: of the whole frame, pixels; contact_points: mark the simulation's contact points.
     """
 
-    def __init__(self, sim, scene, compare: bool, color: str, renderer: str, width: int, height: int):
+    def __init__(self, sim, scene, compare: bool, color: str, renderer: str, width: int, height: int,
+                 contact_points: bool = False):
         self.panels = compare_panels(sim, width) if compare else [
             Panel(sim.model.surface, np.zeros(3), width)]
         try:
@@ -224,6 +229,7 @@ class View:
         self.framed = (initial.min(axis=0), initial.max(axis=0))   # what the camera holds in view
         self.ground_y = scene.effects.ground                        # None: no floor
         self.coloring = VertexColoring(sim, color, copies=2 if compare else 1)
+        self.contact_points = contact_points
         self.caption = caption_lines(sim.scene, compare)
         # Over the sky, or over the floor where the panels' labels take the top.
         self.corner = "bottom-left" if compare else "top-left"
@@ -231,10 +237,14 @@ class View:
     def picture(self, sim) -> np.ndarray:
         """The simulation now, (H, W, 3) uint8: every panel, labels and the colour legend."""
         positions, colors = sim.positions(), self.coloring.colors(sim)
-        shown = np.concatenate([positions[np.unique(p.faces)] + p.offset for p in self.panels])
+        seen = [positions[np.unique(p.faces)] for p in self.panels]
+        shown = np.concatenate([points + p.offset for points, p in zip(seen, self.panels)])
         self.camera, self.framed = widened(self.camera, self.framed, shown, self.aspect)
         pictures = [self.renderer.render(positions + p.offset, p.faces, colors, self.camera,
                                          self.ground_y) for p in self.panels]
+        if self.contact_points:
+            pictures = [draw_points(picture, points + p.offset, self.camera) for picture, points, p
+                        in zip(pictures, by_panel(sim.contact_points, seen), self.panels)]
         return self.coloring.draw_legend(join_panels(pictures, self.panels))
 
     def annotated(self, picture: np.ndarray, lines: list[str]) -> np.ndarray:
@@ -323,6 +333,15 @@ def compare_panels(sim, width: int) -> list[Panel]:
             Panel(right, -shift, width // 2, "corotational")]
 
 
+def by_panel(points: np.ndarray, seen: list[np.ndarray]) -> list[np.ndarray]:
+    """points (k, 3) split by panel: each goes to the panel whose vertices (seen[i], (n_i, 3))
+    have the nearest bounding box (a contact point lies between two bodies of one copy)."""
+    gaps = [np.linalg.norm(np.maximum(0, np.maximum(v.min(axis=0) - points, points - v.max(axis=0))), axis=1)
+            for v in seen]
+    owner = np.argmin(gaps, axis=0)
+    return [points[owner == k] for k in range(len(seen))]
+
+
 def auto_framed(positions: np.ndarray, aspect: float, hint: dict | None) -> Camera:
     """A camera that frames positions (n, 3) with a margin, from the scene's hint's
     direction (eye - target) if there is one."""
@@ -360,23 +379,6 @@ def join_panels(pictures: list[np.ndarray], panels: list[Panel]) -> np.ndarray:
         image[:, edge - DIVIDER_WIDTH // 2: edge + DIVIDER_WIDTH // 2] = DIVIDER_COLOR
     centres = np.concatenate([[0], edges]) + np.array([p.width for p in panels]) / 2
     return draw_labels(image, [(p.label, x) for p, x in zip(panels, centres)])
-
-
-def draw_labels(image: np.ndarray, labels: list[tuple[str, float]]) -> np.ndarray:
-    """A copy of image (H, W, 3) uint8 with each (text, x) of labels on a panel at the
-    top of the image, centred at column x."""
-    canvas = Image.fromarray(image).convert("RGBA")
-    layer = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
-    draw = ImageDraw.Draw(layer)
-    font = ImageFont.load_default(size=max(12, canvas.height // 20))
-    padding = font.size // 3
-    for text, centre in labels:
-        left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
-        box_w, box_h = right - left + 2 * padding, bottom - top + 2 * padding
-        x, y = round(centre - box_w / 2), padding
-        draw.rounded_rectangle([x, y, x + box_w, y + box_h], radius=padding, fill=PANEL_COLOR)
-        draw.text((x + padding - left, y + padding - top), text, font=font, fill=TEXT_COLOR)
-    return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
 
 
 def caption_lines(scene, compare: bool) -> list[str]:

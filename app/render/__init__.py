@@ -4,5 +4,5 @@
     frame.py     what every renderer shares (geometry, lights, floor, shadow) and the Renderer base
     ggui.py      the GGUI (Vulkan) back end;  software.py  the Taichi-kernel rasteriser
     factory.py   `make_renderer`: a back end by name (the base never imports its back ends)
-    colors.py    per-vertex colours (body, volume, strain);  overlay.py  text, legend, palette
+    colors.py    per-vertex colours (body, volume, strain);  overlay.py  text, legend, palette, contact points
 """

@@ -67,6 +67,16 @@ class Camera:
         """World-to-clip matrix, shape (4, 4): clip = M @ [x, y, z, 1]."""
         return self.projection(aspect) @ self.view()
 
+    def to_pixels(self, points, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Where world points (n, 3), metres, appear in a width x height image: pixel
+        coordinates (n, 2), x right and y down from the top-left corner (pixel centres at
+        +0.5, as `ray` takes them), and (n,) True for the points in front of the near plane."""
+        points = np.reshape(points, (-1, 3))
+        clip = np.c_[points, np.ones(len(points))] @ self.view_proj(width / height).T
+        ahead = clip[:, 3] >= self.near
+        ndc = clip[:, :2] / np.where(ahead, clip[:, 3], 1.0)[:, None]
+        return np.c_[(ndc[:, 0] + 1) / 2 * width, (1 - ndc[:, 1]) / 2 * height], ahead
+
     def ray(self, px: float, py: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """World ray through pixel (px, py), e.g. a mouse click.
 

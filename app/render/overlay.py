@@ -1,11 +1,14 @@
-"""Colours for vertices, and text and legends drawn onto finished images.
+"""Colours for vertices, and text, legends and contact points drawn onto finished images.
 
-Text is drawn with Pillow into the image itself because GGUI's widgets do not
-appear in offscreen images, and the software renderer has none.
+They are drawn with Pillow into the image itself because GGUI's widgets do not
+appear in offscreen images, and the software renderer has none; drawn after
+rendering, they look the same whichever renderer made the picture.
 """
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
+
+from app.render.camera import Camera
 
 # Distinct, soft colours for telling bodies apart (RGB in [0, 1]).
 BODY_PALETTE = np.array([
@@ -35,6 +38,9 @@ COLORMAPS = {
 
 TEXT_COLOR = (255, 255, 255, 255)
 PANEL_COLOR = (20, 24, 32, 150)  # translucent dark, readable over any scene
+# Contact points: magenta, a colour no body palette entry or colour map comes near, outlined in dark.
+CONTACT_COLOR = (255, 0, 255)
+CONTACT_OUTLINE = (20, 24, 32)
 
 
 def body_colors(body_index) -> np.ndarray:
@@ -87,6 +93,23 @@ def draw_text_overlay(image: np.ndarray, lines: list[str], corner: str = "top-le
     return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
 
 
+def draw_labels(image: np.ndarray, labels: list[tuple[str, float]]) -> np.ndarray:
+    """A copy of image (H, W, 3) uint8 with each (text, x) of labels on a panel at the
+    top of the image, centred at column x."""
+    canvas = Image.fromarray(image).convert("RGBA")
+    layer = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(layer)
+    font = ImageFont.load_default(size=max(12, canvas.height // 20))
+    padding = font.size // 3
+    for text, centre in labels:
+        left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+        box_w, box_h = right - left + 2 * padding, bottom - top + 2 * padding
+        x, y = round(centre - box_w / 2), padding
+        draw.rounded_rectangle([x, y, x + box_w, y + box_h], radius=padding, fill=PANEL_COLOR)
+        draw.text((x + padding - left, y + padding - top), text, font=font, fill=TEXT_COLOR)
+    return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
+
+
 def draw_legend(image: np.ndarray, title: str, vmin: float, vmax: float,
                 colormap: str = "coolwarm", corner: str = "bottom-right") -> np.ndarray:
     """A copy of image (H, W, 3) uint8 with a colour bar: title above, the map
@@ -114,3 +137,24 @@ def draw_legend(image: np.ndarray, title: str, vmin: float, vmax: float,
         draw.text((x + padding + fraction * bar_width, label_y), text, font=font,
                   fill=TEXT_COLOR, anchor=anchor)
     return np.asarray(Image.alpha_composite(canvas, layer).convert("RGB"))
+
+
+def draw_points(image: np.ndarray, points, camera: Camera) -> np.ndarray:
+    """A copy of image (H, W, 3) uint8 with a dot where the camera sees each of points (n, 3),
+    world metres: a CONTACT_COLOR disc a few pixels wide with a thin dark outline (dots that
+    overlap merge into one outlined patch). Drawn over everything, with no depth test: a
+    contact point lies between two surfaces, so nearly always behind one of them."""
+    canvas = Image.fromarray(image)
+    draw = ImageDraw.Draw(canvas)
+    radius = max(2, round(canvas.height / 160))
+    pixels, ahead = camera.to_pixels(points, canvas.width, canvas.height)
+    # Only the dots that reach into the picture (Pillow takes coordinates as C integers).
+    margin = radius + 1
+    shown = ahead & (pixels >= -margin).all(axis=1) & (pixels <= np.add(canvas.size, margin)).all(axis=1)
+    # Pillow's integer coordinates are pixel centres; repeated dots are drawn once.
+    centres = np.unique(np.round(pixels[shown] - 0.5).astype(np.int64), axis=0)
+    for grow, color in ((1, CONTACT_OUTLINE), (0, CONTACT_COLOR)):
+        r = radius + grow
+        for x, y in centres.tolist():
+            draw.ellipse([x - r, y - r, x + r, y + r], fill=color)
+    return np.asarray(canvas)

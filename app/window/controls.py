@@ -42,6 +42,8 @@ class Controls:
                 self.toggle_corotation()
             elif key == "l":
                 self.next_preconditioner()
+            elif key == "t":
+                self.toggle_contact_points()
             elif key == "f":
                 self.reset_view()
             elif key == "h":

@@ -18,6 +18,7 @@ f   frame the scene again      c   linear <-> corotational
 space  pause     n  one step   r   reset the scene
 v   start/stop video (mp4)     p   screenshot (png)
 l   PCG preconditioner: auto -> two-level -> block Jacobi
+t   contact points (magenta dots where bodies touch)
 scenes: the numbered list in the panel
 h   this help                  Esc quit"""
 
@@ -39,7 +40,7 @@ class Panel:
             if g.button("reset"):
                 self.reset()
             for section in (self.draw_stats, self.draw_methods, self.draw_impulse, self.draw_colors,
-                            self.draw_solver, self.draw_material, self.draw_scenes):
+                            self.draw_contact, self.draw_solver, self.draw_material, self.draw_scenes):
                 g.text("")
                 section(g)
 
@@ -86,6 +87,16 @@ class Panel:
             g.text(f"volume ratio J: blue {self.coloring.vmin}, grey 1, red {self.coloring.vmax}")
         elif self.coloring.mode == "strain":
             g.text(f"strain energy 0 .. {self.coloring.vmax:.3g} J/m^3 (grows, never shrinks)")
+
+    def draw_contact(self, g):
+        """The contact points' toggle, and how many there are (drawn over the bodies)."""
+        g.text("Contact")
+        if g.checkbox("contact points (t)", self.show_contacts) != self.show_contacts:
+            self.toggle_contact_points()
+        if self.sim.scene.effects.contact is None:
+            g.text("none: no contact in this scene (--contact)")
+        elif self.show_contacts:
+            g.text(f"{len(self.sim.contact_points)} points where bodies touch (magenta)")
 
     def draw_solver(self, g):
         """Solver settings; the engine reads them at every step."""

@@ -27,6 +27,7 @@ from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
 from app.render.frame import background, build_frame
 from app.render.ggui import _quiet_taichi, _to_ggui_layout
+from app.render.overlay import draw_points
 from app.render.software import SoftwareRenderer, to_window_layout
 from app.window import orbit
 from app.window.controls import DRAG_PIXELS, MARKER_SECONDS, Controls
@@ -57,13 +58,14 @@ class Viewer(Controls, Panel):
         self.backdrop.from_numpy(_to_ggui_layout(background(width, height)))
         # The bodies are rasterised by Taichi kernels and shown as the canvas's image: GGUI's own
         # 3D scene (Taichi 1.7) keeps a few hundred kB per mesh drawn, every frame, until the
-        # process ends (gigabytes in an hour). Only the click marker goes through it.
+        # process ends (gigabytes in an hour; its particles too, about 120 kB a frame). Only the
+        # click marker goes through it; the contact points (t) are drawn into the picture.
         self.rasteriser = SoftwareRenderer(width, height, smooth=True)
         self.picture = ti.Vector.field(3, ti.f32, (width, height))
         self.marker_point = ti.Vector.field(3, ti.f32, 1)
         self.marker_arrow = ti.Vector.field(3, ti.f32, 16)
         self.sim = None
-        self.paused = self.show_help = False
+        self.paused = self.show_help = self.show_contacts = False
         self.coloring = None
         self.events, self.frame = [], 0
         self.fps, self.frame_seconds, self.render_ms, self.steps_last_frame = 0.0, 0.0, 0.0, 0
@@ -183,6 +185,13 @@ class Viewer(Controls, Panel):
         all_corotational = all(m == "corotational" for m in self.methods())
         self.set_methods(["linear" if all_corotational else "corotational"] * len(self.methods()))
 
+    def toggle_contact_points(self):
+        """Show or hide where bodies touch (Simulation.contact_points; none without contact)."""
+        self.show_contacts = not self.show_contacts
+        if self.show_contacts and self.sim.scene.effects.contact is None:
+            self.message = "no contact in this scene (--contact)"
+        self.events.append({"type": "contact_points", "shown": self.show_contacts})
+
     def next_preconditioner(self):
         """PCG's preconditioner, in turn: auto, two-level, block Jacobi (the engine reads it next step)."""
         settings = self.sim.settings
@@ -240,6 +249,10 @@ class Viewer(Controls, Panel):
         frame = build_frame(self.x, self.sim.model.surface, self.coloring.colors(self.sim), self.camera,
                             ground_y=self.ground_y(), smooth=True)
         self.rasteriser.draw(frame, self.camera)
+        if self.show_contacts and len(self.sim.contact_points):
+            # As the export draws them, over the bodies (app/render/overlay.py).
+            self.rasteriser.image.from_numpy(draw_points(self.rasteriser.image.to_numpy(),
+                                                         self.sim.contact_points, self.camera))
         to_window_layout(self.rasteriser.image, self.picture)
         with _quiet_taichi():
             self.canvas.set_image(self.picture)
