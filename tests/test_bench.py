@@ -298,6 +298,21 @@ def test_bench_profiles_the_boxs_steps_kernel_by_kernel(bench_output):
     assert "## Where a step's time goes" in md and "**one-solve step**" in md and "**default step**" in md
 
 
+def test_bench_measures_what_contact_costs_with_it_and_without(bench_output):
+    """The plan's contact scene (the pile in the full plan; two_boxes, after the upper box lands,
+    here): its steps with contact and with it off, and contact's own kernels' share of them."""
+    results = json.loads((bench_output / "results.json").read_text())
+    contact = results["contact"]
+    assert contact["scene"] == "two_boxes" and contact["bodies"] == 2
+    on, off = contact["on"], contact["off"]
+    assert on["pairs"] > 0 and "pairs" not in off                  # they touch; off, nothing does
+    assert {"prepare_search", "hold_start", "find"} <= set(on["kernels"]) <= measure.contact_kernels()
+    assert on["share"] == pytest.approx(sum(on["kernels"].values())) and 0 < on["share"] < 1
+    assert on["ms_median"] > 0 and off["ms_median"] > 0 and on["newton"] >= 1 and off["newton"] >= 1
+    md = (bench_output / "results.md").read_text()
+    assert "## What contact costs" in md and "| contact's own kernels, share of the pile's step" in md
+
+
 def test_the_targets_table_gives_each_start_up_number_its_verdict():
     startup = {"warm_s": 2.5, "cold_s": 8.0, "second_s": 0.04, "beside_s": 6.0,
                "view_first_s": 1.6, "view_stepped_s": 3.2, "resting_ms": (0.05, 4.0)}

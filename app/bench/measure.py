@@ -8,6 +8,7 @@ import statistics
 import subprocess
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import taichi as ti
@@ -18,6 +19,8 @@ from app.bench import direct
 from app.bench.conclusions import final_error, observed_orders, reference_floor, reference_order
 from app.bench.plan import (BASELINE_TOLERANCE, MAX_ITERATIONS, MIN_TIMED_STEPS, REFERENCE_SETTINGS, REFERENCES,
                             checkpoint_times, direct_backends, make_scene, variants)
+from fem.implicit.broad_phase import BroadPhase
+from fem.implicit.contact import Contact
 
 
 # ---------------------------------------------------------------- running
@@ -274,3 +277,46 @@ def kernel_profile(ref, args, info):
     return {"scene": ref, "tets": sim.model.n_tets, "steps": PROFILE_STEPS, "warmup": PROFILE_WARMUP, "kinds": kinds,
             "machine": f"{info['cpu']}, {info['cores']} cores, {info['backend']} {info['precision']}, "
                        f"{datetime.date.today().isoformat()}"}
+
+
+# ---------------------------------------------------------------- contact's cost (issue 35)
+
+def contact_kernels():
+    """The names of contact's own kernels: broad phase, step bound, first iterate, lagged friction,
+    stats (Contact's and BroadPhase's; no other class of fem/ has a kernel of those names)."""
+    return {name for part in (Contact, BroadPhase) for name, f in vars(part).items()
+            if getattr(f, "_is_wrapped_kernel", False)}
+
+
+def contact_cost(ref, plan, args, info):
+    """{"scene", "bodies", "vertices", "warmup", "steps", "machine", "on", "off"}: a contact scene's steps with
+    Taichi's profiler on (run after kernel_profile, which starts it), from the scene's start after
+    plan.contact_steps[0] steps (the bodies land), with contact and with it off (the bodies pass
+    through each other). Each of "on" and "off": ms/step median, Newton and CG iterations a step,
+    steps not converged; "on" also the pairs touching a step and contact's own kernels' share of
+    the step (their time over the median step's, `contact_kernels`)."""
+    if not ti.lang.impl.current_cfg().kernel_profiler:
+        fem.init(args.arch, args.precision, debug=args.debug, profile=True)
+    warmup, steps = plan.contact_steps
+    scene = make_scene(ref)
+    out = {"scene": Path(ref).stem, "bodies": len(scene.bodies), "warmup": warmup, "steps": steps,
+           "machine": f"{info['cpu']}, {info['cores']} cores, {info['backend']} {info['precision']}, "
+                      f"{datetime.date.today().isoformat()}"}
+    own = contact_kernels()
+    for key, effect in (("on", scene.effects.contact), ("off", None)):
+        sim = fem.Simulation(replace(scene, effects=replace(scene.effects, contact=effect)))
+        out["vertices"] = sim.model.n_vertices
+        for _ in range(warmup):
+            sim.step()
+        profile.restart()
+        rows = [sim.step() for _ in range(steps)]
+        ms = statistics.median(row["wall_ms"] for row in rows)
+        out[key] = {"ms_median": ms, "newton": float(np.mean([row["newton_iters"] for row in rows])),
+                    "cg": float(np.mean([row["solver_iters"] for row in rows])),
+                    "unconverged": sum(not row["converged"] for row in rows)}
+        if effect is not None:
+            table = profile.kernels()
+            out[key]["pairs"] = float(np.mean([row["contact_pairs"] for row in rows]))
+            out[key]["kernels"] = {name: table[name]["ms"] / (steps * ms) for name in own if name in table}
+            out[key]["share"] = sum(out[key]["kernels"].values())
+    return out

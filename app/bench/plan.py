@@ -1,6 +1,7 @@
 """What the benchmark runs: the plans, the variants of a scene, the reference's settings, the scenes."""
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -52,6 +53,8 @@ class Plan:
     stiff: str = ""       # a BOXES bar also compared, made STIFF, on preconditioners alone ("": none)
     preconditioner_steps: int = 30   # steps of each preconditioner in their comparison
     profile: str = ""     # a BOXES bar whose one-solve and default steps get a kernel profile ("": none)
+    contact: str = ""     # a scene with contact whose cost is measured, with contact and without ("": none)
+    contact_steps: tuple = (40, 20)  # its steps before the timed ones (the bodies land), and the timed ones
 
 
 def full_plan():
@@ -60,12 +63,13 @@ def full_plan():
     and solver axes compare, and it alone would take longer than all the others together."""
     elastic = [name for name in scenes.builtin_scenes() if scenes.load_scene(name).effects.contact is None]
     return Plan([*elastic, "box1k", "box10k", "box50k"], (0.4, 1.0, 2.0), 2, 120.0, "epcot",
-                "box50k", profile="box50k")
+                "box50k", profile="box50k", contact=PILE)
 
 
+PILE = str(Path(__file__).resolve().parents[2] / "examples" / "pile.toml")   # 20 boxes falling onto each other
 QUICK = Plan(["cube86", "box1k"], (0.4, 1.0), 2, 20.0)
 TEST = Plan(["box80"], (0.08, 0.2), 2, 10.0, stiff="box80", preconditioner_steps=3,   # tests: seconds
-            profile="box80")
+            profile="box80", contact="two_boxes", contact_steps=(20, 5))
 
 
 @dataclass(frozen=True)

@@ -73,6 +73,7 @@ def markdown(results):
     lines += targets(results)
     lines += preconditioner_table(results)
     lines += kernel_profile(results)
+    lines += contact_cost(results)
     lines += ["## Summary", "",
               f"Corotational backward Euler, PCG {sci(BASELINE_TOLERANCE)}; time in wall seconds per simulated "
               "second, errors at the last checkpoint; the largest dt of the dt axis whose error plus the floor is "
@@ -213,6 +214,9 @@ def targets(results):
         fastest = next(r for r in box["variants"] if r["solver"] == "direct")["backend"]
         add(f"direct baseline ({fastest}) over the matrix-free step, box50k", ">= 30 x", ratio[fastest], "x",
             lambda v: v >= 30, "direct")
+    contact = results.get("contact")
+    add("contact's own kernels, share of the pile's step (20 bodies)", "<= 30 %",
+        contact and 100 * contact["on"]["share"], "%", lambda v: v <= 30, "")
     epcot = by_name.get("epcot")
     row = epcot and baseline(epcot, "corotational", "newton")
     add("memory, epcot, model + state + solver", "<= 200 B/tet", row and row["bytes_per_tet"], "B/tet",
@@ -305,6 +309,30 @@ def kernel_profile(results):
                   profile.markdown(table["rows"], table["steps"], table["steps"] * table["ms_median"], top=15), "",
                   f"Launches: {profile.launches_note(table)}.", ""]
     return lines
+
+
+def contact_cost(results):
+    """A scene's steps with contact and with it off (`main.py bench`'s contact scene: the pile)."""
+    if "contact" not in results:
+        return []
+    c = results["contact"]
+    on, off = c["on"], c["off"]
+    kernels = ", ".join(f"`{name}` {100 * share:.1f} %" for name, share in
+                        sorted(on["kernels"].items(), key=lambda item: -item[1]) if share >= 0.001)
+    return ["## What contact costs", "",
+            f"{c['scene']} ({c['bodies']} bodies, {c['vertices']} vertices), {c['machine']}: {c['steps']} steps after "
+            f"{c['warmup']} from the start, with contact between bodies and with it off (the bodies then pass "
+            "through each other), Taichi's profiler on (read the ratio, not the times).", "",
+            "| contact | ms/step | Newton it./step | CG it./step | steps not converged | pairs touching |",
+            "|---|---:|---:|---:|---:|---:|",
+            f"| on | {on['ms_median']:.3g} | {on['newton']:.1f} | {on['cg']:.0f} | {on['unconverged']} of "
+            f"{c['steps']} | {on['pairs']:.0f} |",
+            f"| off | {off['ms_median']:.3g} | {off['newton']:.1f} | {off['cg']:.0f} | {off['unconverged']} of "
+            f"{c['steps']} | – |", "",
+            f"Contact's own kernels (broad phase, step bound, first iterate, lagged friction, stats) take "
+            f"{100 * on['share']:.1f} % of the step ({kernels}). The rest of what it costs, "
+            f"{on['ms_median'] / off['ms_median']:.1f} times the step without it, is the Newton and CG iterations "
+            "the pairs add (docs/method.md, section 6).", ""]
 
 
 def direct_split(scene):

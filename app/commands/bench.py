@@ -11,8 +11,8 @@ from pathlib import Path
 from app import device, outputs
 from app.bench import startup
 from app.bench.conclusions import headline
-from app.bench.measure import (STIFF, compare_preconditioners, kernel_profile, machine, measure_scene,
-                               stiff_bar)
+from app.bench.measure import (STIFF, compare_preconditioners, contact_cost, kernel_profile, machine,
+                               measure_scene, stiff_bar)
 from app.bench.plan import QUICK, REFERENCES, full_plan, variants
 from app.bench.report import DOCS, DOCS_FILES, RESULT_FILES, write
 from app.files import check_output, refuse_overwrite
@@ -63,6 +63,9 @@ def run(args, plan=None):
     if plan.profile:
         print(f"bench: kernel profile of {plan.profile}", file=sys.stderr)
         results["profile"] = kernel_profile(plan.profile, args, info)    # last: it restarts Taichi
+    if plan.contact:
+        print(f"bench: contact's cost on {Path(plan.contact).stem}", file=sys.stderr)
+        results["contact"] = contact_cost(plan.contact, plan, args, info)      # with the profiler on too
     write(results, folder, names)
     print("\n".join(lines))
     print(f"wrote {folder / names['md']}, {names['json']}, {names['plot']} ({info['bench_minutes']:.1f} min)")
