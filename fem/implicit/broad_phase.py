@@ -12,6 +12,8 @@ Fields (t triangles of the capacity):
     cell_count (table,)     triangles per bucket, then a cursor while filling
     cell_start (table + 1,) where each bucket's triangles start in cell_triangles
     cell_triangles (8 t,)   the triangles of every bucket, bucket by bucket
+    lowest, highest (t, 3)  each triangle's box grown by the search radius, as its lowest and
+                            highest cells (the first pass's; the later passes read them)
     island (bodies,)        the lowest body id joined to a body by candidate pairs
 """
 
@@ -86,6 +88,8 @@ class BroadPhase:
         self.cell_count = ti.field(ti.i32, self.table_size)
         self.cell_start = ti.field(ti.i32, self.table_size + 1)
         self.cell_triangles = ti.field(ti.i32, 8 * t)
+        self.lowest = ti.Vector.field(3, ti.i32, t)       # each triangle's grown box's cells, this search
+        self.highest = ti.Vector.field(3, ti.i32, t)
         self.island = ti.field(ti.i32, model.capacity.bodies)
 
     @ti.func
@@ -135,6 +139,7 @@ class BroadPhase:
         ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt):
             lo, hi = self.triangle_cells(x, k, radius)
+            self.lowest[k], self.highest[k] = lo, hi
             for i, j, l in ti.ndrange(2, 2, 2):
                 c = lo + ti.Vector([i, j, l])
                 if (c <= hi).all() and self.first_time(lo, hi, c):
@@ -151,7 +156,7 @@ class BroadPhase:
             self.cell_count[b] = 0
         ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt):
-            lo, hi = self.triangle_cells(x, k, radius)
+            lo, hi = self.lowest[k], self.highest[k]
             for i, j, l in ti.ndrange(2, 2, 2):
                 c = lo + ti.Vector([i, j, l])
                 if (c <= hi).all() and self.first_time(lo, hi, c):
@@ -166,8 +171,10 @@ class BroadPhase:
             for slot in range(self.cell_start[b], self.cell_start[b + 1]):
                 k = self.cell_triangles[slot]
                 t = self.contact.triangles[k]
-                lo, hi = self.triangle_cells(x, k, radius)
-                if (t != i).all() and (c >= lo).all() and (c <= hi).all():
+                lo, hi = self.lowest[k], self.highest[k]
+                near = (x[i] >= ti.min(x[t[0]], x[t[1]], x[t[2]]) - radius).all() and \
+                    (x[i] <= ti.max(x[t[0]], x[t[1]], x[t[2]]) + radius).all()   # in its grown box
+                if (t != i).all() and (c >= lo).all() and (c <= hi).all() and near:
                     w = closest_weights(x[i], x[t[0]], x[t[1]], x[t[2]])
                     if (x[i] - (w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]])).norm() < radius:
                         self.add_pair(i, k)
@@ -201,7 +208,7 @@ class BroadPhase:
                 b = self.bucket(c)
                 for slot in range(self.cell_start[b], self.cell_start[b + 1]):
                     k = self.cell_triangles[slot]
-                    lo, hi = self.triangle_cells(x, k, radius)
+                    lo, hi = self.lowest[k], self.highest[k]
                     if (c >= lo).all() and (c <= hi).all() and (c == ti.max(lo, lo_e)).all():
                         for side in ti.static(range(3)):
                             f = self.contact.triangle_edges[k][side]
@@ -209,9 +216,12 @@ class BroadPhase:
                             apart = fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]
                             if f > e and apart and self.contact.edge_owner[f] == 3 * k + side:
                                 b0, b1 = x[fb[0]], x[fb[1]]
-                                s, t = segment_weights(a0, a1, b0, b1)
-                                if ((a0 + s * (a1 - a0)) - (b0 + t * (b1 - b0))).norm() < radius:
-                                    self.add_pair(-e - 1, f)
+                                # closer than radius only if their boxes, one grown by radius, meet
+                                if (ti.min(a0, a1) - radius <= ti.max(b0, b1)).all() and \
+                                        (ti.max(a0, a1) + radius >= ti.min(b0, b1)).all():
+                                    s, t = segment_weights(a0, a1, b0, b1)
+                                    if ((a0 + s * (a1 - a0)) - (b0 + t * (b1 - b0))).norm() < radius:
+                                        self.add_pair(-e - 1, f)
 
     @ti.func
     def find_islands(self):
