@@ -281,7 +281,7 @@ class Patches:
         return ti.Vector([f[0], f[1], f[2], torque[0], torque[1], torque[2]])
 
     @ti.func
-    def store_moment(self, a, moment):
+    def store_moment(self, a, moment, r: ti.template()):
         for k in ti.static(range(6)):
             self.g[6 * a + k] = moment[k]
 

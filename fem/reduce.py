@@ -25,8 +25,8 @@ item, `out[body[i]] += ...`: that is what this module is for.
 Use: make a `SegmentSums` beside the fields it sums, `load` the segments' starts (a new
 scene), and call `reduce(value, store, data)` inside a kernel, with two ti.funcs of the
 caller: `value(j, s, data)`, item j's contribution to segment s (a ti.Vector of `width`;
-data: whatever the caller passed, e.g. the field being summed), and `store(s, total)`, what
-to do with segment s's total.
+data: whatever the caller passed, e.g. the field being summed), and `store(s, total, data)`,
+what to do with segment s's total.
 """
 
 import numpy as np
@@ -106,7 +106,7 @@ class SegmentSums:
 
     @ti.func
     def reduce(self, value: ti.template(), store: ti.template(), data: ti.template(), on=1):
-        """For every segment s: store(s, the sum (or max) of value(j, s, data) over its items j).
+        """For every segment s: store(s, the sum (or max) of value(j, s, data) over its items j, data).
         on = 0: nothing (a PCG iteration that has converged)."""
         ti.loop_config(serialize=self.serial)
         for c in range(self.chunks[None] * on):
@@ -120,4 +120,4 @@ class SegmentSums:
             total = self.partial[self.first_chunk[s]]       # not 0 + partial: a serial sum stays bit for bit
             for c in range(self.first_chunk[s] + 1, self.first_chunk[s + 1]):
                 total = self._join(total, self.partial[c])
-            store(s, total)
+            store(s, total, data)

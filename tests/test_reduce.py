@@ -26,7 +26,7 @@ class Summed:
         return values[j]
 
     @ti.func
-    def store(self, s, total):
+    def store(self, s, total, values: ti.template()):
         self.out[s] = total
 
     @ti.kernel

@@ -236,22 +236,7 @@ class Newton:
         finite); after a step that had a lead (fit: the trapezoidal rule's), each body's blend <- the
         share of its lead that would have guessed this step's change best (least squares in the mass
         norm, clipped to [0, 1]; kept where it had none)."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_fit[b] = ti.Vector.zero(ti.f64, 3)
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            b = self.model.vertex_body[i]
-            change = ti.Vector.zero(float, 3)
-            if good:
-                change = v[i] - v_n[i]
-            if good and fit:
-                missed = v[i] - self.guess[i] + self.blend[b] * self.lead[i]   # the change less the linear guess
-                m = ti.cast(self.model.mass[i], ti.f64)
-                self.body_fit[b] += m * ti.Vector([ti.cast(missed.dot(self.lead[i]), ti.f64),
-                                                   ti.cast(self.lead[i].norm_sqr(), ti.f64),
-                                                   ti.cast(missed.norm_sqr(), ti.f64)])
-            self.guess[i] = change
+        self.sleep.sums.reduce(self.fit, self.store_fit, (v_n, v, good, fit))
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None] * fit):
             along, lead, missed = self.body_fit[b][0], self.body_fit[b][1], self.body_fit[b][2]
@@ -260,6 +245,49 @@ class Newton:
                 # a lead that is noise (a body coming to rest, in f32) explains little and adds little
                 share = ti.min(ti.max(along / lead, 0.0), 1.0)
                 self.blend[b] = ti.cast(share * ti.min(along * along / (lead * missed), 1.0), float)
+
+    @ti.func
+    def fit(self, i, b, data: ti.template()):
+        """guess[i] <- vertex i's change; returns m (missed . lead, |lead|^2, |missed|^2) for `remember_change`."""
+        v_n, v = ti.static(data[0], data[1])
+        good, fit = data[2], data[3]
+        change = ti.Vector.zero(float, 3)
+        out = ti.Vector.zero(ti.f64, 10)
+        if good:
+            change = v[i] - v_n[i]
+        if good and fit:
+            missed = v[i] - self.guess[i] + self.blend[b] * self.lead[i]   # the change less the linear guess
+            m = ti.cast(self.model.mass[i], ti.f64)
+            out[0] = m * ti.cast(missed.dot(self.lead[i]), ti.f64)
+            out[1] = m * ti.cast(self.lead[i].norm_sqr(), ti.f64)
+            out[2] = m * ti.cast(missed.norm_sqr(), ti.f64)
+        self.guess[i] = change
+        return out
+
+    @ti.func
+    def store_fit(self, b, total, data: ti.template()):
+        self.body_fit[b] = ti.Vector([total[0], total[1], total[2]])
+
+    @ti.func
+    def slope(self, i, b, data: ti.template()):
+        """Vertex i's share of its body's slope grad E . d."""
+        s = -self.effects.filtered(i, self.potential.rhs[i]).dot(self.linear.solution[i])
+        return ti.Vector([ti.cast(s, ti.f64), 0, 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_slope(self, b, total, data: ti.template()):
+        self.body_slope[b] = total[0]
+
+    @ti.func
+    def change(self, i, b, data: ti.template()):
+        """Vertex i's (|a_b d_i|_m^2, |v_i|_m^2) for `velocity_change`."""
+        m = ti.cast(self.model.mass[i], ti.f64)
+        return ti.Vector([m * ti.cast(self.body_step[b] * self.linear.solution[i], ti.f64).norm_sqr(),
+                          m * ti.cast(self.velocity[i], ti.f64).norm_sqr(), 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_change(self, b, total, data: ti.template()):
+        self.body_change[b], self.body_momentum[b] = total[0], total[1]
 
     @ti.kernel
     def start_direction(self, warm: ti.i32):
@@ -279,13 +307,7 @@ class Newton:
         nothing left to gain (a_b = 0). Returns how many
         bodies search. (Near the answer E changes by |grad|^2 / H: in f32 below E's round-off
         from a gradient of about 1e-4 on, where only the gradient still tells how close it is.)"""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_slope[b] = 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            slope = -self.effects.filtered(i, self.potential.rhs[i]).dot(self.linear.solution[i])
-            self.body_slope[self.model.vertex_body[i]] += ti.cast(slope, ti.f64)
+        self.sleep.sums.reduce(self.slope, self.store_slope, 0)
         count = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
@@ -403,15 +425,7 @@ class Newton:
     def velocity_change(self, tolerance):
         """sum_b |a_b d_b|_M^2 / (tol^2 |v_b|_M^2 + floor_b): <= 1 exactly when no body's velocity
         moved by more than tol of its size (or by round-off) in the last Newton iteration."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_change[b], self.body_momentum[b] = 0.0, 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            m = ti.cast(self.model.mass[i], ti.f64)
-            b = self.model.vertex_body[i]
-            self.body_change[b] += m * ti.cast(self.body_step[b] * self.linear.solution[i], ti.f64).norm_sqr()
-            self.body_momentum[b] += m * ti.cast(self.velocity[i], ti.f64).norm_sqr()
+        self.sleep.sums.reduce(self.change, self.store_change, 0)
         change = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):

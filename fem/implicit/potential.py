@@ -105,21 +105,27 @@ class IncrementalPotential:
     def energy_vertices(self, x: ti.template(), v0: ti.template(), v: ti.template(), dt):
         """body_E[b] <- 1/2 |v_b - v^|_M^2 + dt alpha/2 |v_b|_M^2 - dt v_b^T M g + the ground's
         contact and friction terms, in float64 (J)."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_E[b] = 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            m = ti.cast(self.model.mass[i], ti.f64)
-            u, u0 = ti.cast(v[i], ti.f64), ti.cast(v0[i], ti.f64)
-            e = 0.5 * m * ((u - u0).norm_sqr() + dt * self.effects.mass_damping[None] * u.norm_sqr())
-            if ti.static(self.has_gravity):
-                e -= dt * m * u.dot(ti.cast(self.effects.gravity_vector(), ti.f64))
-            if ti.static(self.effects.has_ground):
-                e += self.effects.step_contact_energy(i, x[i]) + self.effects.friction_energy(i, v[i], dt)
-            self.body_E[self.model.vertex_body[i]] += e
+        self.sleep.sums.reduce(self.vertex_energy, self.store_energy, (x, v0, v, dt))
         if ti.static(self.effects.has_contact):          # the pairs' terms, and their gradient and Hessian
             self.effects.contact.evaluate(x, v, dt, self.body_E)
+
+    @ti.func
+    def vertex_energy(self, i, b, data: ti.template()):
+        """Vertex i's terms of E (`energy_vertices`)."""
+        x, v0, v = ti.static(data[0], data[1], data[2])
+        dt = data[3]
+        m = ti.cast(self.model.mass[i], ti.f64)
+        u, u0 = ti.cast(v[i], ti.f64), ti.cast(v0[i], ti.f64)
+        e = 0.5 * m * ((u - u0).norm_sqr() + dt * self.effects.mass_damping[None] * u.norm_sqr())
+        if ti.static(self.has_gravity):
+            e -= dt * m * u.dot(ti.cast(self.effects.gravity_vector(), ti.f64))
+        if ti.static(self.effects.has_ground):
+            e += self.effects.step_contact_energy(i, x[i]) + self.effects.friction_energy(i, v[i], dt)
+        return ti.Vector([e, 0, 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_energy(self, b, total, data: ti.template()):
+        self.body_E[b] = total[0]
 
     @ti.func
     def energy_tets(self, x: ti.template(), v: ti.template(), dt, moving):
@@ -200,35 +206,39 @@ class IncrementalPotential:
         """rhs <- -grad E = M v^ + dt M g - (1 + dt alpha) M v - (gathered tet terms) + (the
         ground's), the per-body |grad_b|^2 and the per-body scale s_b^2 at this iterate (on the
         step's first call also |M v^|^2). Returns `gradient_norm` (moving: v is not 0)."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_gradient[b], self.body_scale[b] = 0.0, 0.0
-            if first:
-                self.body_momentum[b] = 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            m = self.model.mass[i]
-            g = ti.Vector.zero(float, 3)
-            if ti.static(self.has_gravity):
-                g = dt * m * self.effects.gravity_vector()
-            tets = self.elasticity.gather(i)
-            if ti.static(self.effects.has_ground):       # with gravity's impulse in the step's scale
-                g += self.effects.contact_force(i, x[i], v[i], dt)
-            if ti.static(self.effects.has_contact):      # from the last energy pass at this iterate
-                g += self.effects.contact.force[i]
-            rhs = m * v0[i] + g - (1.0 + dt * self.effects.mass_damping[None]) * m * v[i] - tets
-            self.rhs[i] = rhs
-            b = self.model.vertex_body[i]
-            self.body_gradient[b] += ti.cast(self.effects.filtered(i, rhs).norm_sqr(), ti.f64)
-            # the scale, at this iterate: |M v^|^2 + |dt f|^2 + |dt M g|^2, not |rhs|^2 (~0 at rest).
-            # Taken at the first iterate only, a guess that strains a stiff body inflated it 7 to
-            # 5,500 times, and "converged" steps carried residuals that many times the tolerance
-            momentum = ti.cast(self.effects.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
-            if first:
-                self.body_momentum[b] += momentum
-            self.body_scale[b] += momentum + ti.cast(self.effects.filtered(i, tets).norm_sqr()
-                                                     + self.effects.filtered(i, g).norm_sqr(), ti.f64)
+        self.sleep.sums.reduce(self.vertex_gradient, self.store_gradient, (x, v0, v, dt, first))
         return self.gradient_norm(tolerance, first, moving)
+
+    @ti.func
+    def vertex_gradient(self, i, b, data: ti.template()):
+        """rhs[i] <- vertex i's -grad E; returns its (|grad|^2, |M v^|^2, share of the scale)."""
+        x, v0, v = ti.static(data[0], data[1], data[2])
+        dt = data[3]
+        m = self.model.mass[i]
+        g = ti.Vector.zero(float, 3)
+        if ti.static(self.has_gravity):
+            g = dt * m * self.effects.gravity_vector()
+        tets = self.elasticity.gather(i)
+        if ti.static(self.effects.has_ground):       # with gravity's impulse in the step's scale
+            g += self.effects.contact_force(i, x[i], v[i], dt)
+        if ti.static(self.effects.has_contact):      # from the last energy pass at this iterate
+            g += self.effects.contact.force[i]
+        rhs = m * v0[i] + g - (1.0 + dt * self.effects.mass_damping[None]) * m * v[i] - tets
+        self.rhs[i] = rhs
+        # the scale, at this iterate: |M v^|^2 + |dt f|^2 + |dt M g|^2, not |rhs|^2 (~0 at rest).
+        # Taken at the first iterate only, a guess that strains a stiff body inflated it 7 to
+        # 5,500 times, and "converged" steps carried residuals that many times the tolerance
+        momentum = ti.cast(self.effects.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
+        scale = momentum + ti.cast(self.effects.filtered(i, tets).norm_sqr() + self.effects.filtered(i, g).norm_sqr(),
+                                   ti.f64)
+        return ti.Vector([ti.cast(self.effects.filtered(i, rhs).norm_sqr(), ti.f64), momentum, scale,
+                          0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_gradient(self, b, total, data: ti.template()):
+        self.body_gradient[b], self.body_scale[b] = total[0], total[2]
+        if data[4]:                                  # the step's first iterate
+            self.body_momentum[b] = total[1]
 
     @ti.func
     def gradient_norm(self, tolerance, first, moving):

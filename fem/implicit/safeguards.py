@@ -169,21 +169,7 @@ class Safeguards(Fallback):
     def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(), dt):
         """Shift each unpinned body's velocity uniformly so that its momentum is exactly backward
         Euler's, (1 + dt alpha) sum m v = sum m v^ + dt M g."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_mass[b] = 0.0
-            self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            m = ti.cast(self.model.mass[i], ti.f64)
-            b = self.model.vertex_body[i]
-            g = ti.Vector.zero(ti.f64, 3)
-            if ti.static(self.has_gravity):
-                g = dt * ti.cast(self.effects.gravity_vector(), ti.f64)
-            self.body_mass[b] += m
-            self.body_momentum_vector[b] += m * ((ti.cast(v0[i], ti.f64) + g)
-                                                 / (1.0 + dt * self.effects.mass_damping[None])
-                                                 - ti.cast(v[i], ti.f64))
+        self.sleep.sums.reduce(self.momentum_missing, self.store_momentum, (v0, v, dt))
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             b = self.model.vertex_body[i]
@@ -191,6 +177,23 @@ class Safeguards(Fallback):
                 u = ti.cast(self.body_momentum_vector[b] / self.body_mass[b], float)
                 v[i] += u
                 x[i] = x0[i] + dt * v[i]
+
+    @ti.func
+    def momentum_missing(self, i, b, data: ti.template()):
+        """Vertex i's (mass, momentum backward Euler gives it - its momentum) for `restore_momentum`."""
+        v0, v = ti.static(data[0], data[1])
+        dt = data[2]
+        m = ti.cast(self.model.mass[i], ti.f64)
+        g = ti.Vector.zero(ti.f64, 3)
+        if ti.static(self.has_gravity):
+            g = dt * ti.cast(self.effects.gravity_vector(), ti.f64)
+        p = m * ((ti.cast(v0[i], ti.f64) + g) / (1.0 + dt * self.effects.mass_damping[None]) - ti.cast(v[i], ti.f64))
+        return ti.Vector([m, p[0], p[1], p[2], 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_momentum(self, b, total, data: ti.template()):
+        self.body_mass[b] = total[0]
+        self.body_momentum_vector[b] = ti.Vector([total[1], total[2], total[3]])
 
     @ti.kernel
     def body_energy(self, x: ti.template(), v: ti.template(), when: ti.template(), tets: ti.i32):
@@ -263,18 +266,27 @@ class Safeguards(Fallback):
             self.body_total_size[when, self.island(b)] += self.body_elastic[b]
         if ti.static(self.effects.has_contact):
             self.effects.contact.share_energy(x)
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            m = ti.cast(self.model.mass[i], ti.f64)
-            kinetic, potential = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr(), ti.cast(0.0, ti.f64)
-            if ti.static(self.has_gravity):
-                potential = -m * ti.cast(self.effects.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
-            if ti.static(self.effects.has_ground):
-                kinetic += self.effects.contact_energy(i, x[i])      # stored in the ground's penalty
-            if ti.static(self.effects.has_contact):
-                kinetic += self.effects.contact.energy[i]             # its share of the pairs' penalty
-            self.body_total[when, self.island(self.model.vertex_body[i])] += kinetic + potential
-            self.body_total_size[when, self.island(self.model.vertex_body[i])] += kinetic + ti.abs(potential)
+        self.sleep.sums.reduce(self.vertex_energy, self.store_energy, (x, v, when))
+
+    @ti.func
+    def vertex_energy(self, i, b, data: ti.template()):
+        """Vertex i's (kinetic + gravitational + stored contact energy, the sum of their sizes), J."""
+        x, v = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i], ti.f64)
+        kinetic, potential = 0.5 * m * ti.cast(v[i], ti.f64).norm_sqr(), ti.cast(0.0, ti.f64)
+        if ti.static(self.has_gravity):
+            potential = -m * ti.cast(self.effects.gravity_vector(), ti.f64).dot(ti.cast(x[i], ti.f64))
+        if ti.static(self.effects.has_ground):
+            kinetic += self.effects.contact_energy(i, x[i])      # stored in the ground's penalty
+        if ti.static(self.effects.has_contact):
+            kinetic += self.effects.contact.energy[i]             # its share of the pairs' penalty
+        return ti.Vector([kinetic + potential, kinetic + ti.abs(potential), 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_energy(self, b, total, data: ti.template()):
+        when = data[2]
+        self.body_total[when, self.island(b)] += total[0]        # several bodies may share an island
+        self.body_total_size[when, self.island(b)] += total[1]
 
     @ti.func
     def limit_energy(self, x: ti.template(), v: ti.template(), dt, conserve):
@@ -370,52 +382,62 @@ class Safeguards(Fallback):
         """Per body: its centre's velocity (pinned: 0), its spin omega = I^-1 L (pinned: 0), the
         kinetic energy of its motion about the centre (body_kinetic) and of its deformation,
         v - v_cm - omega x r (body_deformation); free vertices only."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_mass[b] = 0.0
-            self.body_momentum_vector[b] = ti.Vector.zero(ti.f64, 3)
-            self.body_centre[b] = ti.Vector.zero(ti.f64, 3)
-            self.body_spin[b] = ti.Vector.zero(ti.f64, 3)
-            self.body_inertia[b] = ti.Matrix.zero(ti.f64, 3, 3)
-            self.body_kinetic[b] = 0.0
-            self.body_deformation[b] = 0.0
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
-            b = self.model.vertex_body[i]
-            self.body_mass[b] += m
-            self.body_momentum_vector[b] += m * ti.cast(v[i], ti.f64)
-            self.body_centre[b] += m * ti.cast(x[i], ti.f64)
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            if self.body_mass[b] > 0:
-                self.body_centre[b] /= self.body_mass[b]
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):     # the motion about the centre: L, I, its energy
-            b = self.model.vertex_body[i]
-            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
-            r = ti.cast(x[i], ti.f64) - self.body_centre[b]
-            u = ti.cast(v[i], ti.f64) - self.centre_velocity(b)
-            self.body_spin[b] += m * r.cross(u)
-            self.body_inertia[b] += m * (r.dot(r) * ti.Matrix.identity(ti.f64, 3) - r.outer_product(r))
-            self.body_kinetic[b] += 0.5 * m * u.norm_sqr()
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            I = self.body_inertia[b]
-            omega = ti.Vector.zero(ti.f64, 3)
-            if self.body_pinned[b] == 0 and I.determinant() > 1e-12 * I.trace() ** 3:
-                omega = I.inverse() @ self.body_spin[b]
-            self.body_spin[b] = omega
-        ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None]):
-            b = self.model.vertex_body[i]
-            m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
-            r = ti.cast(x[i], ti.f64) - self.body_centre[b]
-            w = ti.cast(v[i], ti.f64) - self.centre_velocity(b) - self.body_spin[b].cross(r)
-            self.body_deformation[b] += 0.5 * m * w.norm_sqr()
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_moving[b] = self.body_kinetic[b] + 0.5 * self.centre_velocity(b).norm_sqr() * self.body_mass[b]
+        self.sleep.sums.reduce(self.moments, self.store_centre, (x, v))
+        self.sleep.sums.reduce(self.turning, self.store_spin, (x, v))
+        self.sleep.sums.reduce(self.deforming, self.store_deformation, (x, v))
+
+    @ti.func
+    def moments(self, i, b, data: ti.template()):
+        """Free vertex i's (mass, momentum, first moment m x)."""
+        x, v = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+        p, q = m * ti.cast(v[i], ti.f64), m * ti.cast(x[i], ti.f64)
+        return ti.Vector([m, p[0], p[1], p[2], q[0], q[1], q[2], 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_centre(self, b, total, data: ti.template()):
+        m = total[0]
+        self.body_mass[b] = m
+        self.body_momentum_vector[b] = ti.Vector([total[1], total[2], total[3]])
+        self.body_centre[b] = ti.Vector([total[4], total[5], total[6]])
+        if m > 0:
+            self.body_centre[b] /= m
+
+    @ti.func
+    def turning(self, i, b, data: ti.template()):
+        """Free vertex i's motion about its body's centre: (angular momentum m r x u, inertia
+        m (r.r I - r r^T) as xx yy zz xy xz yz, kinetic energy m |u|^2 / 2)."""
+        x, v = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+        r = ti.cast(x[i], ti.f64) - self.body_centre[b]
+        u = ti.cast(v[i], ti.f64) - self.centre_velocity(b)
+        L = m * r.cross(u)
+        return ti.Vector([L[0], L[1], L[2],
+                          m * (r[1] * r[1] + r[2] * r[2]), m * (r[0] * r[0] + r[2] * r[2]), m * (r[0] * r[0] + r[1] * r[1]),
+                          -m * r[0] * r[1], -m * r[0] * r[2], -m * r[1] * r[2], 0.5 * m * u.norm_sqr()], ti.f64)
+
+    @ti.func
+    def store_spin(self, b, total, data: ti.template()):
+        """omega = I^-1 L (pinned, or no inertia: 0)."""
+        I = ti.Matrix([[total[3], total[6], total[7]], [total[6], total[4], total[8]], [total[7], total[8], total[5]]], ti.f64)
+        omega = ti.Vector.zero(ti.f64, 3)
+        if self.body_pinned[b] == 0 and I.determinant() > 1e-12 * I.trace() ** 3:
+            omega = I.inverse() @ ti.Vector([total[0], total[1], total[2]])
+        self.body_inertia[b], self.body_spin[b], self.body_kinetic[b] = I, omega, total[9]
+
+    @ti.func
+    def deforming(self, i, b, data: ti.template()):
+        """Free vertex i's kinetic energy of deformation, m |v - v_c - omega x r|^2 / 2."""
+        x, v = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+        r = ti.cast(x[i], ti.f64) - self.body_centre[b]
+        w = ti.cast(v[i], ti.f64) - self.centre_velocity(b) - self.body_spin[b].cross(r)
+        return ti.Vector([0.5 * m * w.norm_sqr(), 0, 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_deformation(self, b, total, data: ti.template()):
+        self.body_deformation[b] = total[0]
+        self.body_moving[b] = self.body_kinetic[b] + 0.5 * self.centre_velocity(b).norm_sqr() * self.body_mass[b]
 
     @ti.func
     def centre_velocity(self, b):

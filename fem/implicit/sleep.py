@@ -3,7 +3,9 @@
 A body asleep is left exactly as it is: every pass of the step skips its tets and filters
 its vertices like pinned ones, so it costs nothing and cannot drift. `Simulation` decides
 when a body falls asleep (fem/simulation.py) and wakes it; this part holds the flag on the
-device and the two kernels that read or hold a body's motion.
+device and the two kernels that read or hold a body's motion. It also holds the bodies' vertex
+ranges, as the segments of `sums`: the step's parts sum over each body's vertices with it
+(`sums.reduce`, fem/reduce.py), one sum at a time.
 
 Fields (bodies of the capacity):
     awake (bodies,)     0: the body sleeps, the step leaves it be; 1: it moves
@@ -14,6 +16,8 @@ import numpy as np
 import taichi as ti
 
 from fem.reduce import SegmentSums
+
+SUMS = 10      # the widest per-body sum: a body's spin (3), inertia (6) and kinetic energy (1)
 
 
 @ti.data_oriented
@@ -26,7 +30,16 @@ class Sleep:
         # a max per body in two stages: no thread waits on its body's one entry
         self.fastest = SegmentSums(model.capacity.vertices, model.capacity.bodies, 1, ti.f64, "max",
                                    serial=serial_vertices)
-        self.starts = None
+        # per-body sums over vertices (a sum of up to SUMS numbers at a time), for every part of
+        # the step: no thread waits on its body's one entry, as every vertex of a one-body mesh did
+        self.sums = SegmentSums(model.capacity.vertices, model.capacity.bodies, SUMS, ti.f64,
+                                serial=serial_vertices)
+
+    def load(self):
+        """A new scene: its bodies' vertex ranges."""
+        starts = np.array([b.vertices.start for b in self.model.bodies] + [self.model.n_vertices])
+        self.fastest.load(starts)
+        self.sums.load(starts)
 
     @ti.func
     def tet_awake(self, e):
@@ -34,10 +47,6 @@ class Sleep:
 
     def body_speeds(self, v, speed):
         """speed[b] <- the largest |v_i|^2 over body b's vertices, (m/s)^2 (speed: (bodies,) float64)."""
-        starts = [b.vertices.start for b in self.model.bodies] + [self.model.n_vertices]
-        if starts != self.starts:                 # a new scene: its bodies' vertex ranges
-            self.fastest.load(np.array(starts))
-            self.starts = starts
         self.largest_speeds(v, speed)
 
     @ti.kernel
@@ -52,7 +61,7 @@ class Sleep:
         return ti.Vector([ti.cast(v[i].norm_sqr(), ti.f64)])
 
     @ti.func
-    def store_speed(self, b, largest):
+    def store_speed(self, b, largest, v: ti.template()):
         self.largest[b] = largest[0]
 
     @ti.kernel

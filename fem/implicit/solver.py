@@ -265,6 +265,7 @@ class ImplicitSolver:
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioning.load()
         self.linear.load()
+        self.sleep.load()
         self.reset()
 
     def reset(self):
