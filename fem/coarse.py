@@ -179,6 +179,7 @@ class Patches:
         self.y = ti.field(float, 6 * capacity)
         self.count = ti.field(ti.i32, ())
         self.sums = SegmentSums(n, capacity, 6, serial=serial)   # Q^T r, per patch
+        self.frame_sums = SegmentSums(n, capacity, 9, serial=serial)    # sum m y Y^T, per patch
         self.key = None
 
     @staticmethod
@@ -206,6 +207,7 @@ class Patches:
         write(self.members, members)
         write(self.start, model.padded(start, cap + 1, np.int32, pad=start[-1]))
         self.sums.load(start)
+        self.frame_sums.load(start)
         write(self.centre, C)
         write(self.spread_inverse, np.linalg.pinv(spread))
         self.patch_body = model.vertex_body_np[members[start[:-1]]]   # the body of each patch
@@ -245,25 +247,26 @@ class Patches:
     @ti.kernel
     def update_frames(self, x: ti.template()):
         """R_a <- the rotation of the patch's best-fit deformation F = (sum m y Y^T)(sum m Y Y^T)^-1,
-        y = x - (its mass-weighted centre), by Newton steps from the last R_a (any rotation will
-        do for a preconditioner; the steps just keep it close)."""
-        ti.loop_config(serialize=self.serial)
-        for a in range(self.count[None]):
-            if self.rotates[a]:
-                mass, centre = 0.0, ti.Vector.zero(float, 3)
-                for j in range(self.start[a], self.start[a + 1]):
-                    i = self.members[j]
-                    mass += self.model.mass[i]
-                    centre += self.model.mass[i] * x[i]
-                centre /= mass
-                S = ti.Matrix.zero(float, 3, 3)
-                for j in range(self.start[a], self.start[a + 1]):
-                    i = self.members[j]
-                    S += self.model.mass[i] * (x[i] - centre).outer_product(
-                        self.model.rest_positions[i] - self.centre[a])
-                q, _ = newton_rotation(S @ self.spread_inverse[a], self.quaternion[a], ROTATION_STEPS)
-                self.quaternion[a] = q
-                self.frame[a] = quaternion_matrix(q)
+        by Newton steps from the last R_a (any rotation will do for a preconditioner; the steps
+        just keep it close). y is x less any point: sum m Y = 0, so the patch's first member
+        will do as well as its centre, and the sum takes one pass, in two stages (fem/reduce.py)."""
+        self.frame_sums.reduce(self.spread, self.store_frame, x)
+
+    @ti.func
+    def spread(self, j, a, x: ti.template()):
+        """Member j's m y Y^T (row by row), i = members[j], y = x_i less the patch's first member."""
+        i = self.members[j]
+        S = self.model.mass[i] * (x[i] - x[self.members[self.start[a]]]).outer_product(
+            self.model.rest_positions[i] - self.centre[a])
+        return ti.Vector([S[0, 0], S[0, 1], S[0, 2], S[1, 0], S[1, 1], S[1, 2], S[2, 0], S[2, 1], S[2, 2]])
+
+    @ti.func
+    def store_frame(self, a, S, x: ti.template()):
+        if self.rotates[a]:
+            F = ti.Matrix([[S[0], S[1], S[2]], [S[3], S[4], S[5]], [S[6], S[7], S[8]]]) @ self.spread_inverse[a]
+            q, _ = newton_rotation(F, self.quaternion[a], ROTATION_STEPS)
+            self.quaternion[a] = q
+            self.frame[a] = quaternion_matrix(q)
 
     @ti.func
     def restrict(self, r: ti.template(), on):

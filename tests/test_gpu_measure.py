@@ -30,3 +30,35 @@ def test_gpu_measure_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     assert text.count("## Kernel profile") == 4
     assert "n/a (bytes need CUPTI" in text
     assert text.count("Launches: ") == 4 and "tasks an iteration" in text
+
+
+NCU_CSV = '''==PROF== Connected to process 7 (/usr/bin/python3)
+"ID","Process ID","Process Name","Host Name","Kernel Name","Context","Stream","Block Size","Grid Size","Device","CC","Section Name","Metric Name","Metric Unit","Metric Value"
+{rows}==PROF== Disconnected from process 7
+'''
+
+
+def ncu_rows(launch, kernel, read, written, time, time_unit="nsecond"):
+    row = f'"{launch}","7","python3","host","{kernel}","1","7","(128, 1, 1)","(64, 1, 1)","0","9.0","Command line profiler metrics",'
+    return "".join(row + f'"{metric}","{unit}","{value}"\n' for metric, unit, value in
+                   (("dram__bytes_read.sum", "byte", read), ("dram__bytes_write.sum", "byte", written),
+                    ("gpu__time_duration.sum", time_unit, time)))
+
+
+def test_gpu_bytes_reads_what_ncu_counted_per_taichi_kernel(tmp_path):
+    """tools/gpu_bytes.py: bytes and times from ncu's CSV (thousands separators, units), summed per
+    Taichi kernel over its tasks, and the step's bandwidth against the device's peak."""
+    from tools import gpu_bytes
+    log = tmp_path / "ncu.csv"
+    log.write_text(NCU_CSV.format(rows=ncu_rows(0, "cg_iterations_c80_0_kernel_3_range_for", "2,000,000", "1,000,000", "1,500")
+                                  + ncu_rows(1, "cg_iterations_c80_0_kernel_4_range_for", "1,000,000", "0", "1,000")
+                                  + ncu_rows(2, "after_step_c90_1_kernel_0_range_for", "500", "500", "0.5", "usecond")))
+    launches = gpu_bytes.read(log)
+    assert [launch["kernel"] for launch in launches.values()] == ["cg_iterations", "cg_iterations", "after_step"]
+    assert launches["2"] == {"kernel": "after_step", "bytes": 1000.0, "seconds": 5e-7}
+    text = gpu_bytes.table(launches, steps=2, device="NVIDIA H100 80GB HBM3", ms_per_step=0.01)
+    # cg_iterations: 4 MB in 2.5 us over 2 steps: 2 MB and 0.00125 ms a step, 1600 GB/s
+    assert "| cg_iterations | 1.0 | 0.001 | 83.3 % | 2.0 | 1600 |" in text
+    # all: 4.001 MB in 3 us: 1334 GB/s, 40 % of the H100's 3,350; over 0.01 ms steps 200 GB/s, 6 %
+    assert "1334 GB/s (40 % of 3,350 GB/s)" in text
+    assert "200 GB/s (6 % of 3,350 GB/s)" in text
