@@ -21,10 +21,14 @@ from fem.builder import initial_state, model_arrays
 from fem.errors import FemError
 from fem.scene import METHODS, Material, check_precision, select_vertices
 from fem.implicit.effects import FRICTION_SPEED
+from fem.implicit.potential import ROUNDOFF
+from fem.runtime import epsilon
 from fem.implicit.solver import StepInfo
 
 # A body sleeps after QUIET_STEPS steps in a row in which no vertex moved more than
-# QUIET_MOTION of the body's size: its velocities are set to 0 and steps leave it exactly
+# QUIET_MOTION of the body's size, or ROUNDOFF eps of it where that is more (float32: 3.6e-6;
+# a damped f32 cube at rest jitters by 1e-6 of its size a step, round-off's floor, and slept
+# or not by chance): its velocities are set to 0 and steps leave it exactly
 # as it is, at no cost, until an impulse (a click), a new state, material or method wakes it.
 # A body pressed into the ground, or touching another body (contact), is quiet below the smoothed
 # friction's creep speed too (FRICTION_SPEED, fem/implicit/effects.py): friction holds it, up to
@@ -101,7 +105,8 @@ class Simulation:
             self.solver.effects.contact.broad.touching(self.state.x, creep)
         fell = False
         for b, body in enumerate(self.model.bodies):
-            quiet_speed = max(QUIET_MOTION * body.size / self.settings.dt, FRICTION_SPEED * creep[b])
+            quiet_speed = max(max(QUIET_MOTION, ROUNDOFF * epsilon()) * body.size / self.settings.dt,
+                              FRICTION_SPEED * creep[b])
             quiet = self.awake[b] and speed[b] <= quiet_speed
             self.quiet_speeds[b] = quiet_speed
             self.quiet[b] = self.quiet[b] + 1 if quiet else 0
