@@ -62,3 +62,7 @@ def test_gpu_bytes_reads_what_ncu_counted_per_taichi_kernel(tmp_path):
     # all: 4.001 MB in 3 us: 1334 GB/s, 40 % of the H100's 3,350; over 0.01 ms steps 200 GB/s, 6 %
     assert "1334 GB/s (40 % of 3,350 GB/s)" in text
     assert "200 GB/s (6 % of 3,350 GB/s)" in text
+    # its stepping half, on the CPU (nothing profiled there): the box builds and steps
+    run = subprocess.run([sys.executable, "-m", "tools.gpu_bytes", "run", "--k", "3", "--arch", "cpu", "--steps", "1"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0 and "270 tets, default: 1 steps profiled" in run.stderr, run.stderr

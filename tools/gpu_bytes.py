@@ -87,20 +87,22 @@ def table(launches, steps, device="", ms_per_step=None):
     return "\n".join(lines) + "\n"
 
 
-def run(k, kind, steps):
-    """WARMUP steps of the box with k, then `steps` steps of `kind` with ncu profiling on."""
-    fem.init("gpu", "f32")
+def run(k, kind, steps, arch="gpu"):
+    """WARMUP steps of the box with k, then `steps` steps of `kind` with ncu profiling on
+    (arch cpu: the same steps, nothing profiled: a check of this script)."""
+    fem.init(arch, "f32")
     sim = box_simulation(k)
     sim.settings = dataclasses.replace(sim.settings, **STEPS[kind])
     for _ in range(WARMUP):
         sim.step()
-    cuda = ctypes.CDLL("libcuda.so.1")
+    cuda = ctypes.CDLL("libcuda.so.1") if arch != "cpu" else None
     ti.sync()
-    started = cuda.cuProfilerStart()             # 0: CUDA_SUCCESS
+    started = cuda.cuProfilerStart() if cuda else "cpu"      # 0: CUDA_SUCCESS
     for _ in range(steps):
         sim.step()
     ti.sync()
-    cuda.cuProfilerStop()
+    if cuda:
+        cuda.cuProfilerStop()
     print(f"{sim.model.n_tets:,} tets, {kind}: {steps} steps profiled (cuProfilerStart: {started})", file=sys.stderr)
 
 
@@ -111,6 +113,7 @@ def main(argv=None):
     stepping.add_argument("--k", type=int, default=17, help="the box of 2k x k x k cells (default 17: box50k)")
     stepping.add_argument("--kind", choices=list(STEPS), default="default")
     stepping.add_argument("--steps", type=int, default=3)
+    stepping.add_argument("--arch", choices=["gpu", "cpu"], default="gpu")
     reading = commands.add_parser("table", help="read ncu's CSV log")
     reading.add_argument("csv")
     reading.add_argument("--steps", type=int, default=3)
@@ -118,7 +121,7 @@ def main(argv=None):
     reading.add_argument("--ms-per-step", type=float)
     args = parser.parse_args(argv)
     if args.command == "run":
-        run(args.k, args.kind, args.steps)
+        run(args.k, args.kind, args.steps, args.arch)
     else:
         print(table(read(args.csv), args.steps, args.device, args.ms_per_step))
     return 0
