@@ -30,7 +30,7 @@ from tools.gpu_measure import PEAK_GB_S, STEPS, WARMUP, box_simulation
 
 BYTES = ("dram__bytes_read.sum", "dram__bytes_write.sum")
 TIME = "gpu__time_duration.sum"
-UNITS = {"byte": 1, "kbyte": 1e3, "mbyte": 1e6, "gbyte": 1e9, "nsecond": 1e-9, "usecond": 1e-6,
+UNITS = {"byte": 1, "kbyte": 1e3, "mbyte": 1e6, "gbyte": 1e9, "nsecond": 1e-9, "ns": 1e-9, "usecond": 1e-6, "us": 1e-6,
          "msecond": 1e-3, "second": 1}
 
 
@@ -116,7 +116,7 @@ def main(argv=None):
     stepping.add_argument("--arch", choices=["gpu", "cpu"], default="gpu")
     reading = commands.add_parser("table", help="read ncu's CSV log")
     reading.add_argument("csv")
-    reading.add_argument("--steps", type=int, default=3)
+    reading.add_argument("--steps", type=float, default=3, help="steps profiled (a run cut short: its tasks over a step's)")
     reading.add_argument("--device", default="")
     reading.add_argument("--ms-per-step", type=float)
     args = parser.parse_args(argv)
