@@ -16,7 +16,6 @@ from fem.elastic import corner_forces, edge_matrix, energy_density, linear_stres
 from fem.rotation import quaternion_matrix
 
 NAIVE = 2                # Model.method(e) of a tet of the naive variant (fem.scene.METHODS)
-TET_CHUNK = 16           # tets a thread sums per body before adding to a per-body total
 
 
 @ti.data_oriented

@@ -38,7 +38,6 @@ Fields (n vertices, bodies of the capacity):
 import taichi as ti
 
 from fem.elastic import corner_forces, energy_density, linear_stress
-from fem.implicit.elasticity import TET_CHUNK
 
 ROUNDOFF = 30.0          # per-body floors of the stopping tests, in units of the precision's epsilon
 
@@ -129,30 +128,31 @@ class IncrementalPotential:
 
     @ti.func
     def energy_tets(self, x: ti.template(), v: ti.template(), dt, moving):
-        """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K(R) v_b, summed in float64 (J), a chunk of
-        tets at a time (as in Safeguards.body_energy); corner <- the tet terms of grad E at
+        """body_E[b] += Psi_b(x) + dt beta/2 v_b^T K(R) v_b, summed in float64 (J) over each
+        body's tets in two stages (`Sleep.tet_sums`); corner <- the tet terms of grad E at
         (x, v), in the same pass: a trial iterate the line search accepts needs its gradient
         next. moving=0: v is 0 (as in gradient_corners), so the damping terms are too."""
-        n = self.model.tet_count[None]
-        ti.loop_config(serialize=self.serial_tets)
-        for c in range((n + TET_CHUNK - 1) // TET_CHUNK):
-            body, total = -1, ti.cast(0.0, ti.f64)
-            for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
-                if self.model.tet_body[e] != body:
-                    if body >= 0:
-                        self.body_E[body] += total
-                    body, total = self.model.tet_body[e], 0.0
-                B = self.gradient_tet(x, v, dt, moving, e)
-                awake = ti.cast(self.sleep.tet_awake(e), ti.f64)
-                total += awake * self.elasticity.elastic_energy(x, e)
-                if ti.static(self.has_stiffness_damping) and moving:
-                    W = ti.cast(self.model.rest_volume[e], ti.f64)
-                    mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
-                    dF = ti.cast(self.model.edges(v, e), ti.f64) @ ti.cast(B, ti.f64)
-                    beta = ti.cast(dt * self.effects.stiffness_damping[None], ti.f64)
-                    total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
-            if body >= 0:
-                self.body_E[body] += total
+        self.sleep.tet_sums.reduce(self.tet_energy, self.add_energy, (x, v, dt, moving))
+
+    @ti.func
+    def tet_energy(self, e, b, data: ti.template()):
+        """Tet e's terms of E; corner <- its terms of grad E."""
+        x, v = ti.static(data[0], data[1])
+        dt, moving = data[2], data[3]
+        B = self.gradient_tet(x, v, dt, moving, e)
+        awake = ti.cast(self.sleep.tet_awake(e), ti.f64)
+        total = awake * self.elasticity.elastic_energy(x, e)
+        if ti.static(self.has_stiffness_damping) and moving:
+            W = ti.cast(self.model.rest_volume[e], ti.f64)
+            mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
+            dF = ti.cast(self.model.edges(v, e), ti.f64) @ ti.cast(B, ti.f64)
+            beta = ti.cast(dt * self.effects.stiffness_damping[None], ti.f64)
+            total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
+        return ti.Vector([total], ti.f64)
+
+    @ti.func
+    def add_energy(self, b, total, data: ti.template()):
+        self.body_E[b] += total[0]
 
     # ------------------------------------------------------------ grad E
 

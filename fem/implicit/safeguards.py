@@ -50,7 +50,6 @@ Fields (bodies of the capacity; energies summed in float64):
 import taichi as ti
 
 from fem.elastic import is_finite
-from fem.implicit.elasticity import TET_CHUNK
 from fem.implicit.potential import ROUNDOFF
 from fem.implicit.fallback import AFTER, BEFORE, Fallback   # noqa: F401 (BEFORE, AFTER: the solver's too)
 from fem.runtime import epsilon
@@ -239,24 +238,7 @@ class Safeguards(Fallback):
         elastic with the rotations extracted at x (kept in body_elastic; tets=0: taken from it);
         body_total_size[when, b] <- the sum of the sizes of its terms (J), the scale of its
         round-off. when: BEFORE or AFTER the step."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            if tets:
-                self.body_elastic[b] = 0.0
-        # A body's tets are contiguous: each chunk of tets sums into a running total and adds it
-        # to body_elastic once per body it meets, not once per tet (threads would fight over it).
-        n = self.model.tet_count[None]
-        ti.loop_config(serialize=self.serial_tets)
-        for c in range(tets * ((n + TET_CHUNK - 1) // TET_CHUNK)):
-            body, elastic = -1, ti.cast(0.0, ti.f64)
-            for e in range(c * TET_CHUNK, ti.min(n, (c + 1) * TET_CHUNK)):
-                if self.model.tet_body[e] != body:
-                    if body >= 0:
-                        self.body_elastic[body] += elastic
-                    body, elastic = self.model.tet_body[e], 0.0
-                elastic += self.elasticity.elastic_energy(x, e)
-            if body >= 0:
-                self.body_elastic[body] += elastic
+        self.sleep.tet_sums.reduce(self.tet_elastic, self.store_elastic, x, tets)   # over each body's tets
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_total[when, b], self.body_total_size[when, b] = 0.0, 0.0
@@ -267,6 +249,14 @@ class Safeguards(Fallback):
         if ti.static(self.effects.has_contact):
             self.effects.contact.share_energy(x)
         self.sleep.sums.reduce(self.vertex_energy, self.store_energy, (x, v, when))
+
+    @ti.func
+    def tet_elastic(self, e, b, x: ti.template()):
+        return ti.Vector([self.elasticity.elastic_energy(x, e)], ti.f64)
+
+    @ti.func
+    def store_elastic(self, b, total, x: ti.template()):
+        self.body_elastic[b] = total[0]
 
     @ti.func
     def vertex_energy(self, i, b, data: ti.template()):

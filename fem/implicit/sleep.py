@@ -4,8 +4,8 @@ A body asleep is left exactly as it is: every pass of the step skips its tets an
 its vertices like pinned ones, so it costs nothing and cannot drift. `Simulation` decides
 when a body falls asleep (fem/simulation.py) and wakes it; this part holds the flag on the
 device and the two kernels that read or hold a body's motion. It also holds the bodies' vertex
-ranges, as the segments of `sums`: the step's parts sum over each body's vertices with it
-(`sums.reduce`, fem/reduce.py), one sum at a time.
+and tet ranges, as the segments of `sums` and `tet_sums`: the step's parts sum over each body's
+vertices or tets with them (`reduce`, fem/reduce.py), one sum at a time.
 
 Fields (bodies of the capacity):
     awake (bodies,)     0: the body sleeps, the step leaves it be; 1: it moves
@@ -22,7 +22,7 @@ SUMS = 10      # the widest per-body sum: a body's spin (3), inertia (6) and kin
 
 @ti.data_oriented
 class Sleep:
-    def __init__(self, model, serial_vertices):
+    def __init__(self, model, serial_vertices, serial_tets):
         self.model = model
         self.serial_vertices = serial_vertices
         self.awake = ti.field(ti.i32, model.capacity.bodies)
@@ -34,12 +34,14 @@ class Sleep:
         # the step: no thread waits on its body's one entry, as every vertex of a one-body mesh did
         self.sums = SegmentSums(model.capacity.vertices, model.capacity.bodies, SUMS, ti.f64,
                                 serial=serial_vertices)
+        self.tet_sums = SegmentSums(model.capacity.tets, model.capacity.bodies, 1, ti.f64, serial=serial_tets)
 
     def load(self):
-        """A new scene: its bodies' vertex ranges."""
+        """A new scene: its bodies' vertex and tet ranges."""
         starts = np.array([b.vertices.start for b in self.model.bodies] + [self.model.n_vertices])
         self.fastest.load(starts)
         self.sums.load(starts)
+        self.tet_sums.load(np.array([b.tets.start for b in self.model.bodies] + [self.model.n_tets]))
 
     @ti.func
     def tet_awake(self, e):

@@ -90,7 +90,7 @@ class ImplicitSolver:
     def __init__(self, model, switches):
         self.model, self.switches = model, switches
         self.serial_vertices = switches.serial_vertices
-        self.sleep = Sleep(model, switches.serial_vertices)
+        self.sleep = Sleep(model, switches.serial_vertices, switches.serial_tets)
         self.rotations = Rotations(model, self.sleep, switches)
         self.elasticity = Elasticity(model, self.rotations, self.sleep, switches)
         self.effects = Effects(model, self.elasticity, self.sleep, switches)
