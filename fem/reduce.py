@@ -57,7 +57,7 @@ class SegmentSums:
         first_chunk (segments + 1,)    each segment's chunks: first_chunk[s] .. first_chunk[s+1]-1
         chunk_segment (chunks,)        the segment of each chunk
         partial (chunks, width)        stage 1's sums, in `dtype`
-    combine: "sum", or "max" (the largest value, and 0: for values >= 0). serial: the loops run
+    combine: "sum", or "max" (the largest value; 0 for an empty segment). serial: the loops run
     on one thread, a chunk per segment. interleave: chunks interleave (default: on a GPU).
     """
 
@@ -111,8 +111,10 @@ class SegmentSums:
         ti.loop_config(serialize=self.serial)
         for c in range(self.chunks[None] * on):
             s, first, n, stride = self.items(c)
-            total = ti.Vector.zero(self.dtype, self.width)
-            for t in range(n):
+            total = ti.Vector.zero(self.dtype, self.width)      # an empty segment's
+            if n > 0:
+                total = value(first, s, data)
+            for t in range(1, n):
                 total = self._join(total, value(first + t * stride, s, data))
             self.partial[c] = total
         ti.loop_config(serialize=self.serial)

@@ -152,17 +152,28 @@ class Safeguards(Fallback):
         forces' and gravity's alone. (No ground: every body is free.) body_clearance[b] <- how far
         its lowest vertex is above the ground at the end (m): the energy projection's shift along
         g may not reach it."""
-        ti.loop_config(serialize=True)
-        for b in range(self.model.body_count[None]):
-            self.body_touching[b] = 0
-            self.body_clearance[b] = FAR
         if ti.static(self.effects.has_ground):
-            ti.loop_config(serialize=self.serial_vertices)
-            for i in range(self.model.vertex_count[None]):
-                b = self.model.vertex_body[i]
-                if self.effects.pressed(x_n[i]) or self.effects.pressed(x[i]):
-                    self.body_touching[b] = 1
-                ti.atomic_min(self.body_clearance[b], x[i][1] - self.effects.ground[None])
+            self.sleep.fastest.reduce(self.ground_contact, self.store_contact, (x_n, x))
+        else:
+            ti.loop_config(serialize=True)
+            for b in range(self.model.body_count[None]):
+                self.body_touching[b] = 0
+                self.body_clearance[b] = FAR
+
+    @ti.func
+    def ground_contact(self, i, b, data: ti.template()):
+        """Vertex i's (1 if pressed into the ground at the step's start or end else 0, its depth
+        below the ground at the end), for `find_contacts`' largest of each."""
+        x_n, x = ti.static(data[0], data[1])
+        pressed = 0.0
+        if self.effects.pressed(x_n[i]) or self.effects.pressed(x[i]):
+            pressed = 1.0
+        return ti.Vector([pressed, ti.cast(self.effects.ground[None] - x[i][1], ti.f64)])
+
+    @ti.func
+    def store_contact(self, b, largest, data: ti.template()):
+        self.body_touching[b] = ti.cast(largest[0] > 0.5, ti.i32)
+        self.body_clearance[b] = ti.cast(-largest[1], float)
 
     @ti.func
     def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(), dt):

@@ -27,8 +27,9 @@ class Sleep:
         self.serial_vertices = serial_vertices
         self.awake = ti.field(ti.i32, model.capacity.bodies)
         self.largest = ti.field(ti.f64, model.capacity.bodies)       # (m/s)^2, of body_speeds
-        # a max per body in two stages: no thread waits on its body's one entry
-        self.fastest = SegmentSums(model.capacity.vertices, model.capacity.bodies, 1, ti.f64, "max",
+        # a max per body of up to two numbers in two stages: no thread waits on its body's one
+        # entry (its fastest vertex here; its contact with the ground in fem/implicit/safeguards.py)
+        self.fastest = SegmentSums(model.capacity.vertices, model.capacity.bodies, 2, ti.f64, "max",
                                    serial=serial_vertices)
         # per-body sums over vertices (a sum of up to SUMS numbers at a time), for every part of
         # the step: no thread waits on its body's one entry, as every vertex of a one-body mesh did
@@ -60,7 +61,7 @@ class Sleep:
 
     @ti.func
     def speed_squared(self, i, b, v: ti.template()):
-        return ti.Vector([ti.cast(v[i].norm_sqr(), ti.f64)])
+        return ti.Vector([ti.cast(v[i].norm_sqr(), ti.f64), 0.0])
 
     @ti.func
     def store_speed(self, b, largest, v: ti.template()):
