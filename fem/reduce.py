@@ -37,6 +37,7 @@ from fem import runtime
 # Items per chunk: a patch of the 973k box (1,330 vertices) in 11 chunks, a one-body sum of its
 # 170k vertices in 1,330 partials for stage 2. Not measured on a GPU yet: tune it there.
 CHUNK = 128
+LOWEST = -3.4e38       # where a max starts: about float32's lowest number
 
 
 def chunk_layout(starts, chunk, single):
@@ -84,6 +85,14 @@ class SegmentSums:
             field.from_numpy(padded)
 
     @ti.func
+    def _nothing(self):
+        """What a sum (0) or a max (the lowest number) starts from."""
+        start = ti.Vector.zero(self.dtype, self.width)
+        if ti.static(self.combine == "max"):
+            start = ti.Vector([LOWEST] * self.width, self.dtype)
+        return start
+
+    @ti.func
     def _join(self, a, b):
         result = a + b
         if ti.static(self.combine == "max"):
@@ -111,10 +120,8 @@ class SegmentSums:
         ti.loop_config(serialize=self.serial)
         for c in range(self.chunks[None] * on):
             s, first, n, stride = self.items(c)
-            total = ti.Vector.zero(self.dtype, self.width)      # an empty segment's
-            if n > 0:
-                total = value(first, s, data)
-            for t in range(1, n):
+            total = self._nothing()
+            for t in range(n):
                 total = self._join(total, value(first + t * stride, s, data))
             self.partial[c] = total
         ti.loop_config(serialize=self.serial)
@@ -122,4 +129,6 @@ class SegmentSums:
             total = self.partial[self.first_chunk[s]]       # not 0 + partial: a serial sum stays bit for bit
             for c in range(self.first_chunk[s] + 1, self.first_chunk[s + 1]):
                 total = self._join(total, self.partial[c])
+            if self.start[s + 1] == self.start[s]:
+                total = ti.Vector.zero(self.dtype, self.width)
             store(s, total, data)
