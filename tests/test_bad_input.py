@@ -28,7 +28,7 @@ def simulate(case, folder, *extra):
     for name, text in case.files.items():
         (folder / name).write_text(text)
     return subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", *case.args, *extra],
-                          cwd=folder, capture_output=True, text=True, timeout=120)
+                          cwd=folder, capture_output=True, text=True, timeout=300)
 
 
 @pytest.mark.parametrize("name", ["NaN coordinate", "coursework: header promises 3 impulses, has 2",

@@ -288,7 +288,7 @@ def start(argv, folder):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
-def wait_for(condition, process, timeout=120):
+def wait_for(condition, process, timeout=300):
     end = time.monotonic() + timeout
     while not condition() and process.poll() is None and time.monotonic() < end:
         time.sleep(0.05)
@@ -305,7 +305,7 @@ def test_interrupted_simulate_keeps_every_complete_row(tmp_path, signal_number):
 
     wait_for(lambda: rows_written() >= 20, process)
     process.send_signal(signal_number)
-    out, err = process.communicate(timeout=60)
+    out, err = process.communicate(timeout=300)
     assert process.returncode == 130, err
     assert "Traceback" not in err
     rows = [json.loads(line) for line in (tmp_path / "s.jsonl").read_text().splitlines()]

@@ -169,7 +169,7 @@ def test_points_behind_the_camera_or_off_the_picture_are_not_drawn():
 @pytest.mark.parametrize("extra", [[], ["--compare"]])
 def test_a_scene_without_contact_is_refused_in_one_line(tmp_path, extra):
     run = subprocess.run([sys.executable, str(REPO / "main.py"), "export", "cube86", "--contact-points",
-                          "--out", "frames", *extra], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+                          "--out", "frames", *extra], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert run.returncode == 2
     assert run.stderr.startswith("error: --contact-points: cube86") and len(run.stderr.splitlines()) == 1
     assert "--contact" in run.stderr.split(";")[1]

@@ -26,7 +26,7 @@ def export(*args, cwd, env=None, **popen):
     """`python main.py export ...` in a fresh interpreter, run from a temporary
     folder (GGUI writes an imgui.ini into the working directory)."""
     command = [sys.executable, str(REPO / "main.py"), "export", *args]
-    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=120,
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300,
                           env={**os.environ, **(env or {})}, **popen)
 
 
@@ -129,11 +129,11 @@ def test_interrupted_export_keeps_its_frames_and_a_video_of_them(workdir):
                "--size", "160x128", "--out", "cut", "--video", "cut.mp4"]
     process = subprocess.Popen(command, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True)
-    deadline = time.monotonic() + 100
+    deadline = time.monotonic() + 300
     while len(frames(workdir / "cut")) < 3 and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     process.send_signal(signal.SIGTERM)
-    stderr = process.communicate(timeout=60)[1]
+    stderr = process.communicate(timeout=300)[1]
     assert process.returncode == 130, stderr
     assert "Traceback" not in stderr
     written = frames(workdir / "cut")

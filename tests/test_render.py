@@ -40,7 +40,7 @@ def run_python(code, cwd=REPO, **env):
     GGUI window run in a temporary one.
     """
     return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True,
-                          timeout=120, env={**os.environ, "PYTHONPATH": str(REPO), **env})
+                          timeout=300, env={**os.environ, "PYTHONPATH": str(REPO), **env})
 
 
 @pytest.fixture(scope="module", params=[ti.f32, ti.f64], ids=["f32", "f64"])
