@@ -121,6 +121,8 @@ class Safeguards(Fallback):
         self.find_contacts(x_n, x)
         if ti.static(momentum):
             self.restore_momentum(v0, x0, x, v, h)
+            if ti.static(self.effects.has_ground):     # a restored body moved: it may end in the ground now
+                self.find_contacts(x_n, x)
         if ti.static(keep):
             ti.loop_config(serialize=self.serial_vertices)
             for i in range(self.model.vertex_count[None]):
