@@ -1,5 +1,6 @@
 """Shared test fixtures: Taichi on the CPU, and small scenes built in Python."""
 
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,15 @@ from scenes.hard_cases import cube
 
 ROOT = Path(__file__).resolve().parents[1]
 CGGS = ROOT.parent / "shared" / "cggs"
+
+
+def as_in_a_terminal():
+    """preexec_fn of a run the tests interrupt: Ctrl-C, Ctrl-\\ and a closed terminal reach it as
+    they do from a terminal, even when the suite runs in the background or under nohup (a shell
+    starts background jobs with SIGINT and SIGQUIT ignored, nohup ignores SIGHUP, and children
+    inherit what is ignored)."""
+    for number in (signal.SIGINT, signal.SIGQUIT, signal.SIGHUP):
+        signal.signal(number, signal.SIG_DFL)
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 import main
+from conftest import as_in_a_terminal
 from app import device, progress
 from app.display import display_problem
 from fem import mesh
@@ -281,11 +282,10 @@ def test_no_progress_bar_in_a_log(monkeypatch):
 # ---------------------------------------------------------------- interruptions
 
 def start(argv, folder):
-    """`main.py argv` in folder, able to get Ctrl-C even when the tests themselves run in the
-    background (a shell starts background jobs with SIGINT ignored, and children inherit that)."""
+    """`main.py argv` in folder, able to get the signals a terminal sends (`as_in_a_terminal`)."""
     return subprocess.Popen([sys.executable, str(ROOT / "main.py"), *argv], cwd=folder,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            preexec_fn=as_in_a_terminal)
 
 
 def wait_for(condition, process, timeout=300):

@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import as_in_a_terminal
+
 REPO = Path(__file__).resolve().parents[1]
 FRAMES = 4
 SIZE = (160, 128)   # multiples of 16, as H.264 wants
@@ -128,7 +130,7 @@ def test_interrupted_export_keeps_its_frames_and_a_video_of_them(workdir):
     command = [sys.executable, str(REPO / "main.py"), "export", "cube86", "--frames", "1000",
                "--size", "160x128", "--out", "cut", "--video", "cut.mp4"]
     process = subprocess.Popen(command, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                               text=True)
+                               text=True, preexec_fn=as_in_a_terminal)
     deadline = time.monotonic() + 300
     while len(frames(workdir / "cut")) < 3 and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)

@@ -22,6 +22,7 @@ import imageio.v2
 import pytest
 
 from app import files, outputs, video
+from conftest import as_in_a_terminal
 from test_cli import ROOT, final_error_line, here, one_error_line, run  # noqa: F401  (here is a fixture)
 
 SMALL_EXPORT = ["export", "cube86", "--frames", "3", "--size", "64x64", "--renderer", "software"]
@@ -37,6 +38,8 @@ def main_py(*argv, cwd, stdout):
 
 
 def start(argv, folder, **kwargs):
+    """`main.py argv` in folder, getting the signals a terminal sends unless kwargs say otherwise."""
+    kwargs.setdefault("preexec_fn", as_in_a_terminal)
     return subprocess.Popen([sys.executable, str(ROOT / "main.py"), *argv], cwd=folder,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **kwargs)
 

@@ -19,6 +19,7 @@ import pytest
 
 from app import files, outputs
 from fem.errors import FemError
+from conftest import as_in_a_terminal
 from test_cli import ROOT, final_error_line, here, one_error_line, run  # noqa: F401  (here is a fixture)
 
 SMALL_EXPORT = ["export", "cube", "--frames", "3", "--size", "64x64", "--renderer", "software"]
@@ -334,6 +335,7 @@ def test_a_users_files_shaped_like_temporary_ones_are_never_removed(here):
 # ---------------------------------------------------------------- signals and pipes
 
 def start(argv, folder, **kwargs):
+    kwargs.setdefault("preexec_fn", as_in_a_terminal)
     return subprocess.Popen([sys.executable, str(ROOT / "main.py"), *argv], cwd=folder, stderr=subprocess.PIPE,
                             text=True, **kwargs)
 
