@@ -58,12 +58,14 @@ class SegmentSums:
         first_chunk (segments + 1,)    each segment's chunks: first_chunk[s] .. first_chunk[s+1]-1
         chunk_segment (chunks,)        the segment of each chunk
         partial (chunks, width)        stage 1's sums, in `dtype`
-    combine: "sum", or "max" (the largest value; 0 for an empty segment). serial: the loops run
+    chunk: items per chunk (CHUNK). combine: "sum", or "max" (the largest value; 0 for an empty segment). serial: the loops run
     on one thread, a chunk per segment. interleave: chunks interleave (default: on a GPU).
     """
 
-    def __init__(self, items, segments, width, dtype=float, combine="sum", serial=False, interleave=None):
-        capacity = -(-items // CHUNK) + segments
+    def __init__(self, items, segments, width, dtype=float, combine="sum", serial=False, interleave=None,
+                 chunk=CHUNK):
+        self.chunk = chunk
+        capacity = -(-items // chunk) + segments
         self.width, self.dtype, self.combine = width, dtype, combine
         self.serial = serial
         self.interleave = runtime.current().get("arch") not in ("x64", "arm64") if interleave is None else interleave
@@ -76,7 +78,7 @@ class SegmentSums:
 
     def load(self, starts):
         """The segments [starts[s], starts[s+1]) (numpy, segments + 1 offsets)."""
-        chunk_segment, first_chunk = chunk_layout(starts, CHUNK, self.serial)
+        chunk_segment, first_chunk = chunk_layout(starts, self.chunk, self.serial)
         self.segments[None], self.chunks[None] = len(starts) - 1, len(chunk_segment)
         for field, values in ((self.start, starts), (self.first_chunk, first_chunk),
                               (self.chunk_segment, chunk_segment)):

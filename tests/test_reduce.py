@@ -51,17 +51,18 @@ def uneven(count, seed=1):
 CASES = {"one body": np.array([50_000]), "uneven bodies": uneven(37), "1000 bodies": uneven(1000)}
 
 
+@pytest.mark.parametrize("chunk", [CHUNK, 16])
 @pytest.mark.parametrize("serial", [False, True])
 @pytest.mark.parametrize("interleave", [False, True])
 @pytest.mark.parametrize("case", CASES)
-def test_sums_and_maxima_per_segment_equal_numpy(f32, case, interleave, serial):
+def test_sums_and_maxima_per_segment_equal_numpy(f32, case, interleave, serial, chunk):
     starts = segments(CASES[case])
     values = np.random.default_rng(2).standard_normal((starts[-1], 2))
     expected_sum = np.array([values[a:b].sum(0) if b > a else [0, 0] for a, b in zip(starts, starts[1:])])
     expected_max = np.array([values[a:b].max(0) if b > a else [0, 0]      # the largest, negative or not
                              for a, b in zip(starts, starts[1:])])
     for combine, expected in (("sum", expected_sum), ("max", expected_max)):
-        summed = Summed(values, starts, combine=combine, interleave=interleave, serial=serial)
+        summed = Summed(values, starts, combine=combine, interleave=interleave, serial=serial, chunk=chunk)
         summed.run()
         magnitude = np.array([np.abs(values[a:b]).sum(0) for a, b in zip(starts, starts[1:])])
         assert np.all(np.abs(summed.out.to_numpy() - expected) <= 1e-14 * magnitude)
