@@ -63,9 +63,9 @@ class SegmentSums:
     """
 
     def __init__(self, items, segments, width, dtype=float, combine="sum", serial=False, interleave=None,
-                 chunk=CHUNK):
-        self.chunk = chunk
-        capacity = -(-items // chunk) + segments
+                 chunk=None):
+        self.chunk = chunk or CHUNK
+        capacity = -(-items // self.chunk) + segments
         self.width, self.dtype, self.combine = width, dtype, combine
         self.serial = serial
         self.interleave = runtime.current().get("arch") not in ("x64", "arm64") if interleave is None else interleave

@@ -4,6 +4,7 @@ converged reference) and costs that add up.
 Timings are never asserted: they are what the benchmark measures.
 """
 
+import io
 import json
 import math
 
@@ -14,8 +15,10 @@ from tqdm import tqdm
 import fem
 import main
 from app.bench import conclusions, measure, plan, report
+from app.bench import plot as bench_plot
 from app.commands import bench
 from fem.implicit.integrators import chosen
+from test_cli import run
 
 
 def run_bench(tmp_path, *extra, precision="f64"):
@@ -33,6 +36,22 @@ def bench_output(tmp_path_factory):
 def rows_of(out):
     (scene,) = json.loads((out / "results.json").read_text())["scenes"]
     return scene, scene["variants"]
+
+
+def test_the_accuracy_plot_of_figures_is_the_benchs_own_from_the_same_results(bench_output, tmp_path):
+    """`figures --bench results.json` redraws the benchmark's plot: the same PNG as the plot of
+    those results, and the numbers behind it are the benchmark's own series. (Here, beside the
+    one bench run of this module: a second run cost the suite five minutes.)"""
+    results = bench_output / "results.json"
+    code, _, err = run("figures", "--out", str(tmp_path), "--only", "accuracy_vs_time", "--bench", str(results))
+    assert code == 0, err
+    expected = io.BytesIO()
+    bench_plot.plot(json.loads(results.read_text()), expected)
+    assert (tmp_path / "accuracy_vs_time.png").read_bytes() == expected.getvalue()
+    (scene,) = json.loads(results.read_text())["scenes"]
+    numbers = json.loads((tmp_path / "accuracy_vs_time.json").read_text())
+    plotted = numbers["series"][scene["name"]]
+    assert {legend: [list(p) for p in points] for (legend, _, _), points in bench_plot.series(scene).items()} == plotted
 
 
 def test_bench_writes_all_three_files(bench_output):

@@ -2,22 +2,19 @@
 the engine's positions say and what docs/ holds, and bad input is one error line.
 
 The torsion figures run at their committed length (the runs take seconds; Taichi's compiling
-takes most of the time); the benchmark's plot is redrawn from a bench run on a tiny plan.
+takes most of the time); the benchmark's plot is redrawn from a bench run in tests/test_bench.py.
 """
 
 import contextlib
 import io
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
 from conftest import ROOT
 
 import main
-from app.bench import conclusions, plan
-from app.bench import plot as bench_plot
-from app.commands import bench, figures
+from app.commands import figures
 from scenes import load_scene
 
 DOCS = ROOT / "docs"
@@ -132,36 +129,9 @@ def test_the_committed_figure_has_the_same_numbers(torsion, name):
         np.testing.assert_allclose(series, reference, rtol=0.05, atol=1e-2)
 
 
-# ---------------------------------------------------------------- the benchmark's plot, redrawn
+# ---------------------------------------------------------------- the benchmark's plot
 
-@pytest.fixture(scope="module")
-def bench_results(tmp_path_factory):
-    """results.json of `bench` on box80 to t = 0.08 s with one dt, one PCG tolerance and one Jacobi count."""
-    out = tmp_path_factory.mktemp("bench")
-    with pytest.MonkeyPatch.context() as patch:
-        smaller = {"DT_FACTORS": (1,), "PCG_TOLERANCES": (plan.BASELINE_TOLERANCE,), "JACOBI_ITERATIONS": (10,)}
-        for name, value in smaller.items():       # in every part of the benchmark that reads it
-            for part in (plan, conclusions, bench_plot):
-                if hasattr(part, name):
-                    patch.setattr(part, name, value)
-        args = main.build_parser().parse_args(["bench", "--out", str(out), "--overwrite"])
-        with contextlib.redirect_stdout(io.StringIO()):
-            assert bench.run(args, plan=replace(plan.TEST, checkpoints=(0.08,))) == 0
-        # bench_plot.series labels the plot from these constants: redraw with them still in place.
-        yield out / "results.json"
-
-
-def test_the_accuracy_plot_is_the_benchs_own_from_the_same_results(bench_results, tmp_path):
-    code, _, err = run("figures", "--out", str(tmp_path), "--only", "accuracy_vs_time", "--bench", str(bench_results))
-    assert code == 0, err
-    expected = io.BytesIO()
-    bench_plot.plot(json.loads(bench_results.read_text()), expected)
-    assert (tmp_path / "accuracy_vs_time.png").read_bytes() == expected.getvalue()
-    (scene,) = json.loads(bench_results.read_text())["scenes"]
-    numbers = json.loads((tmp_path / "accuracy_vs_time.json").read_text())
-    plotted = numbers["series"]["box80"]
-    assert {legend: [list(p) for p in points] for (legend, _, _), points in bench_plot.series(scene).items()} == plotted
-
+# (redrawn from a bench run's results: tests/test_bench.py, beside that run)
 
 def test_without_benchmark_results_the_accuracy_plot_is_skipped_with_a_reason(tmp_path):
     maker = figures.Maker(quick=True, cggs=None, bench_results=tmp_path / "no-docs" / "benchmark.json")

@@ -159,17 +159,14 @@ class Safeguards(Fallback):
         else:
             ti.loop_config(serialize=True)
             for b in range(self.model.body_count[None]):
-                self.body_touching[b] = 0
-                self.body_clearance[b] = FAR
+                self.body_touching[b], self.body_clearance[b] = 0, FAR
 
     @ti.func
     def ground_contact(self, i, b, data: ti.template()):
         """Vertex i's (1 if pressed into the ground at the step's start or end else 0, its depth
         below the ground at the end), for `find_contacts`' largest of each."""
         x_n, x = ti.static(data[0], data[1])
-        pressed = 0.0
-        if self.effects.pressed(x_n[i]) or self.effects.pressed(x[i]):
-            pressed = 1.0
+        pressed = ti.cast(self.effects.pressed(x_n[i]) or self.effects.pressed(x[i]), ti.f64)
         return ti.Vector([pressed, ti.cast(self.effects.ground[None] - x[i][1], ti.f64)])
 
     @ti.func
