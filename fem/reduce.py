@@ -68,7 +68,7 @@ class SegmentSums:
         capacity = -(-items // self.chunk) + segments
         self.width, self.dtype, self.combine = width, dtype, combine
         self.serial = serial
-        self.interleave = runtime.current().get("arch") not in ("x64", "arm64") if interleave is None else interleave
+        self.interleave = not runtime.on_cpu() if interleave is None else interleave
         self.start = ti.field(ti.i32, segments + 1)
         self.first_chunk = ti.field(ti.i32, segments + 1)
         self.chunk_segment = ti.field(ti.i32, capacity)

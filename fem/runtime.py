@@ -136,9 +136,14 @@ def requested():
 PARALLEL_MIN = {"tets": 8000, "vertices": 30000}
 
 
+def on_cpu():
+    """True when Taichi runs on the CPU (x64 or arm64)."""
+    return _current.get("arch") in ("x64", "arm64")
+
+
 def serial_loops(count, kind):
     """True when a CPU loop over `count` tets or vertices (kind) is faster on one thread."""
-    return _current.get("arch") in ("x64", "arm64") and count < PARALLEL_MIN[kind]
+    return on_cpu() and count < PARALLEL_MIN[kind]
 
 
 def epsilon():

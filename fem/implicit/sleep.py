@@ -40,7 +40,7 @@ class Sleep:
         # a tet's terms are heavy (its rotation, energy and gradient): chunks of TET_CHUNK keep both
         # CPU threads busy to the end (128 made box50k's energy passes 1.5 times as long)
         self.tet_sums = SegmentSums(model.capacity.tets, model.capacity.bodies, 1, ti.f64, serial=serial_tets,
-                                    chunk=TET_CHUNK if runtime.current().get("arch") in ("x64", "arm64") else CHUNK)
+                                    chunk=TET_CHUNK if runtime.on_cpu() else CHUNK)
 
     def load(self):
         """A new scene: its bodies' vertex and tet ranges."""
