@@ -28,12 +28,14 @@ how many iterations a solve takes, never what it converges to.
 import numpy as np
 import taichi as ti
 
+from fem import runtime
 from fem.reduce import SegmentSums
 from fem.rotation import newton_rotation, quaternion_matrix
 
 PATCH_VERTICES = 90      # vertices per patch, about (measured on box50k: 90 to 300 per patch, 128 to 32 patches)
 MAX_PATCHES = 128        # patches of all bodies together at most: the coarse matrix is at most 768 x 768
 ROTATION_STEPS = 8       # Newton steps per step on a patch's rotation, from the last one
+COARSE_PARTS = 8         # on a GPU: each row of the coarse product in this many pieces, a thread each
 
 
 def split(ids, X, parts):
@@ -159,7 +161,8 @@ class Patches:
         rotates (p,)               1: R_a follows the body (corotational), 0: R_a = I
         quaternion (p, 4), frame (p, 3x3)   R_a
         coarse_inverse (6p, 6p)    A_c^-1
-        g, y (6p,)                 Q^T r and A_c^-1 Q^T r
+        g (6p,)                    Q^T r
+        y (parts, 6p)              A_c^-1 Q^T r, in `parts` pieces that add up to it (one on a CPU)
     """
 
     def __init__(self, model, serial):
@@ -175,8 +178,9 @@ class Patches:
         self.quaternion = ti.Vector.field(4, float, capacity)
         self.frame = ti.Matrix.field(3, 3, float, capacity)
         self.coarse_inverse = ti.field(float, (6 * capacity, 6 * capacity))
+        self.parts = 1 if serial or runtime.on_cpu() else COARSE_PARTS
         self.g = ti.field(float, 6 * capacity)
-        self.y = ti.field(float, 6 * capacity)
+        self.y = ti.field(float, (self.parts, 6 * capacity))
         self.count = ti.field(ti.i32, ())
         self.sums = SegmentSums(n, capacity, 6, serial=serial)   # Q^T r, per patch
         self.frame_sums = SegmentSums(n, capacity, 9, serial=serial)    # sum m y Y^T, per patch
@@ -290,19 +294,29 @@ class Patches:
 
     @ti.func
     def solve(self, on):
-        """y <- A_c^-1 g: a dense product, a row per thread."""
+        """y <- A_c^-1 g, a dense product. On a CPU a row per thread. On a GPU a row is too long
+        for one thread (768 serial loads): each row in `parts` pieces, a thread each, and
+        neighbouring threads take neighbouring rows of one piece. A_c^-1 is symmetric, so a
+        thread reads its row as a column, and the loads of neighbouring threads coalesce."""
         size = 6 * self.count[None]
+        width = (size + self.parts - 1) // self.parts
         ti.loop_config(serialize=self.serial)
-        for row in range(size * on):
+        for t in range(size * self.parts * on):
+            row, part = t % size, t // size
             s = 0.0
-            for col in range(size):
-                s += self.coarse_inverse[row, col] * self.g[col]
-            self.y[row] = s
+            for col in range(part * width, ti.min(size, part * width + width)):
+                if ti.static(self.parts > 1):
+                    s += self.coarse_inverse[col, row] * self.g[col]
+                else:
+                    s += self.coarse_inverse[row, col] * self.g[col]
+            self.y[part, row] = s
 
     @ti.func
     def prolong(self, i):
-        """(Q y)_i = R_a (t_a + w_a x Y_i), a = vertex i's patch (before filtering)."""
+        """(Q y)_i = R_a (t_a + w_a x Y_i), a = vertex i's patch (before filtering); y's pieces added."""
         a = self.patch[i]
-        t = ti.Vector([self.y[6 * a], self.y[6 * a + 1], self.y[6 * a + 2]])
-        w = ti.Vector([self.y[6 * a + 3], self.y[6 * a + 4], self.y[6 * a + 5]])
+        t, w = ti.Vector.zero(float, 3), ti.Vector.zero(float, 3)
+        for part in ti.static(range(self.parts)):
+            t += ti.Vector([self.y[part, 6 * a], self.y[part, 6 * a + 1], self.y[part, 6 * a + 2]])
+            w += ti.Vector([self.y[part, 6 * a + 3], self.y[part, 6 * a + 4], self.y[part, 6 * a + 5]])
         return self.frame[a] @ (t + w.cross(self.model.rest_positions[i] - self.centre[a]))

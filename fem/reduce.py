@@ -9,6 +9,12 @@ when segments are few and long (a body, 128 patches of a million-tet mesh). So:
              into its own partial[c];
     stage 2: each segment adds its chunks' partials, in order, into its result.
 
+A long segment has many chunks (a one-body mesh of 973k tets: 7,600), too many for stage 2's
+one thread a segment on a GPU. There the partials are added in more stages first, FAN_IN at a
+time in chunks like stage 1's, until each segment has FAN_IN or fewer (7,600 -> 238 -> 8).
+A CPU runs as many threads as it has cores, and adds a few thousand numbers in microseconds:
+it keeps two stages.
+
 No two threads write one place, and the order of the adds is fixed by the layout, so a sum
 is the same on every run. On the CPU a chunk is a contiguous run of items; on a GPU the
 chunks of a segment interleave (chunk k of C takes items k, k + C, k + 2C, ...), so that
@@ -35,8 +41,9 @@ import taichi as ti
 from fem import runtime
 
 # Items per chunk: a patch of the 973k box (1,330 vertices) in 11 chunks, a one-body sum of its
-# 170k vertices in 1,330 partials for stage 2. Not measured on a GPU yet: tune it there.
+# 170k vertices in 1,330 partials. Not measured on a GPU yet: tune it there.
 CHUNK = 128
+FAN_IN = 32            # partials per chunk in the stages between the first and the last, on a GPU
 LOWEST = -3.4e38       # where a max starts: about float32's lowest number
 
 
@@ -51,40 +58,48 @@ def chunk_layout(starts, chunk, single):
 
 @ti.data_oriented
 class SegmentSums:
-    """Two-stage sums of up to `segments` segments over up to `items` items.
+    """Sums (or maxima) in stages of up to `segments` segments over up to `items` items.
 
     Fields:
         start (segments + 1,)          the segments' item ranges
-        first_chunk (segments + 1,)    each segment's chunks: first_chunk[s] .. first_chunk[s+1]-1
-        chunk_segment (chunks,)        the segment of each chunk
-        partial (chunks, width)        stage 1's sums, in `dtype`
-    chunk: items per chunk (CHUNK). combine: "sum", or "max" (the largest value; 0 for an empty segment). serial: the loops run
-    on one thread, a chunk per segment. interleave: chunks interleave (default: on a GPU).
+        stages[k].first_chunk (segments + 1,)    each segment's chunks of stage k + 1
+        stages[k].chunk_segment (chunks,)        the segment of each chunk
+        stages[k].partial (chunks, width)        the chunks' sums, in `dtype`
+    chunk: items per chunk (CHUNK). combine: "sum", or "max" (the largest value; 0 for an empty
+    segment). serial: the loops run on one thread, a chunk per segment. interleave: chunks
+    interleave (default: on a GPU). fan_in: partials per chunk of the stages between the first
+    and the last (default: FAN_IN on a GPU; 0, none, on a CPU).
     """
 
     def __init__(self, items, segments, width, dtype=float, combine="sum", serial=False, interleave=None,
-                 chunk=None):
+                 chunk=None, fan_in=None):
         self.chunk = chunk or CHUNK
-        capacity = -(-items // self.chunk) + segments
+        self.fan_in = (0 if serial or runtime.on_cpu() else FAN_IN) if fan_in is None else fan_in
         self.width, self.dtype, self.combine = width, dtype, combine
         self.serial = serial
         self.interleave = not runtime.on_cpu() if interleave is None else interleave
         self.start = ti.field(ti.i32, segments + 1)
-        self.first_chunk = ti.field(ti.i32, segments + 1)
-        self.chunk_segment = ti.field(ti.i32, capacity)
-        self.partial = ti.Vector.field(width, dtype, capacity)
         self.segments = ti.field(ti.i32, ())
-        self.chunks = ti.field(ti.i32, ())
+        self.stages = []
+        units, longest, per = items, items, self.chunk       # all units, one segment's most, units per chunk
+        while True:
+            capacity = -(-units // per) + segments
+            self.stages.append(Stage(capacity, segments, width, dtype))
+            units, longest, per = capacity, -(-longest // per), self.fan_in
+            if serial or not self.fan_in or longest <= self.fan_in:
+                break
 
     def load(self, starts):
         """The segments [starts[s], starts[s+1]) (numpy, segments + 1 offsets)."""
-        chunk_segment, first_chunk = chunk_layout(starts, self.chunk, self.serial)
-        self.segments[None], self.chunks[None] = len(starts) - 1, len(chunk_segment)
-        for field, values in ((self.start, starts), (self.first_chunk, first_chunk),
-                              (self.chunk_segment, chunk_segment)):
-            padded = np.zeros(field.shape[0], np.int32)
-            padded[:len(values)] = values
-            field.from_numpy(padded)
+        self.segments[None] = len(starts) - 1
+        _write(self.start, starts)
+        units, per = starts, self.chunk
+        for stage in self.stages:
+            chunk_segment, first_chunk = chunk_layout(units, per, self.serial)
+            stage.chunks[None] = len(chunk_segment)
+            _write(stage.first_chunk, first_chunk)
+            _write(stage.chunk_segment, chunk_segment)
+            units, per = first_chunk, self.fan_in
 
     @ti.func
     def _nothing(self):
@@ -102,11 +117,12 @@ class SegmentSums:
         return result
 
     @ti.func
-    def items(self, c):
-        """Chunk c's segment s and items: n of them, from `first` on, `stride` apart."""
-        s = self.chunk_segment[c]
-        k, count = c - self.first_chunk[s], self.first_chunk[s + 1] - self.first_chunk[s]
-        begin, length = self.start[s], self.start[s + 1] - self.start[s]
+    def units(self, c, stage: ti.template(), unit_start: ti.template()):
+        """Chunk c of `stage`: its segment s and units (items, or the stage before's partials):
+        n of them, from `first` on, `stride` apart; unit_start: the segments' unit ranges."""
+        s = stage.chunk_segment[c]
+        k, count = c - stage.first_chunk[s], stage.first_chunk[s + 1] - stage.first_chunk[s]
+        begin, length = unit_start[s], unit_start[s + 1] - unit_start[s]
         first, n, stride = 0, 0, 1
         if ti.static(self.interleave):
             first, n, stride = begin + k, (length - k + count - 1) // count, count
@@ -119,18 +135,46 @@ class SegmentSums:
     def reduce(self, value: ti.template(), store: ti.template(), data: ti.template(), on=1):
         """For every segment s: store(s, the sum (or max) of value(j, s, data) over its items j, data).
         on = 0: nothing (a PCG iteration that has converged)."""
+        first = self.stages[0]
         ti.loop_config(serialize=self.serial)
-        for c in range(self.chunks[None] * on):
-            s, first, n, stride = self.items(c)
+        for c in range(first.chunks[None] * on):
+            s, begin, n, stride = self.units(c, first, self.start)
             total = self._nothing()
             for t in range(n):
-                total = self._join(total, value(first + t * stride, s, data))
-            self.partial[c] = total
+                total = self._join(total, value(begin + t * stride, s, data))
+            first.partial[c] = total
+        for k in ti.static(range(1, len(self.stages))):      # a GPU's stages between: FAN_IN partials a chunk
+            stage, before = self.stages[k], self.stages[k - 1]
+            for c in range(stage.chunks[None] * on):
+                s, begin, n, stride = self.units(c, stage, before.first_chunk)
+                total = self._nothing()
+                for t in range(n):
+                    total = self._join(total, before.partial[begin + t * stride])
+                stage.partial[c] = total
+        last = self.stages[ti.static(len(self.stages) - 1)]
         ti.loop_config(serialize=self.serial)
         for s in range(self.segments[None] * on):
-            total = self.partial[self.first_chunk[s]]       # not 0 + partial: a serial sum stays bit for bit
-            for c in range(self.first_chunk[s] + 1, self.first_chunk[s + 1]):
-                total = self._join(total, self.partial[c])
+            total = last.partial[last.first_chunk[s]]       # not 0 + partial: a serial sum stays bit for bit
+            for c in range(last.first_chunk[s] + 1, last.first_chunk[s + 1]):
+                total = self._join(total, last.partial[c])
             if self.start[s + 1] == self.start[s]:
                 total = ti.Vector.zero(self.dtype, self.width)
             store(s, total, data)
+
+
+@ti.data_oriented
+class Stage:
+    """One stage's chunks: which segment each belongs to, each segment's first, and their partials."""
+
+    def __init__(self, capacity, segments, width, dtype):
+        self.chunk_segment = ti.field(ti.i32, capacity)
+        self.first_chunk = ti.field(ti.i32, segments + 1)
+        self.partial = ti.Vector.field(width, dtype, capacity)
+        self.chunks = ti.field(ti.i32, ())
+
+
+def _write(field, values):
+    """field <- values, padded with zeros to its size."""
+    padded = np.zeros(field.shape[0], np.int32)
+    padded[:len(values)] = values
+    field.from_numpy(padded)

@@ -103,21 +103,29 @@ def preconditioner_reference(sim, r):
     return (jacobi + coarse) * free
 
 
-@pytest.mark.parametrize("loops", ["serial", "parallel"])
-def test_preconditioner_is_symmetric_positive_definite_and_follows_the_body(loops, monkeypatch):
-    """Also with parallel loops and chunks of 16 members, so that the restriction's two-stage sums
-    (fem/reduce.py) split every patch into several chunks, as on a large mesh."""
-    if loops == "parallel":
+@pytest.mark.parametrize("loops", ["serial", "parallel", "a GPU's"])
+def test_preconditioner_is_symmetric_positive_definite_and_follows_the_body(loops, monkeypatch, request):
+    """Also with parallel loops and chunks of 16 members, so that the restriction's sums in stages
+    (fem/reduce.py) split every patch into several chunks, as on a large mesh; and laid out as on
+    a GPU (interleaved chunks, stages between, the coarse product's rows in pieces)."""
+    if loops != "serial":
         monkeypatch.setattr(fem.runtime, "PARALLEL_MIN", {"tets": 0, "vertices": 0})
         monkeypatch.setattr(fem.reduce, "CHUNK", 16)
+    if loops == "a GPU's":
+        monkeypatch.setattr(fem.runtime, "on_cpu", lambda: False)
+        monkeypatch.setattr(fem.reduce, "FAN_IN", 2)
+        fem.pool.clear()                          # parts made for a CPU's layout are not borrowed,
+        request.addfinalizer(fem.pool.clear)      # nor these by later tests
     pinned = np.flatnonzero(cube(cells=6).vertices[:, 0] < -0.49)
     sim = fem.Simulation(bar(pinned=pinned))
     for _ in range(10):
         sim.step()
     frames = sim.solver.patches.frame.to_numpy()[:4]
     assert np.abs(frames - np.eye(3)).max() > 0.05            # the patches turned with the bar
-    if loops == "parallel":
-        assert not sim.solver.patches.serial and sim.solver.patches.sums.chunks[None] > 2 * sim.solver.patches.count[None]
+    patches = sim.solver.patches
+    if loops != "serial":
+        assert not patches.serial and patches.sums.stages[0].chunks[None] > 2 * patches.count[None]
+    assert (patches.parts > 1, len(patches.sums.stages) > 1) == (loops == "a GPU's",) * 2
     rng = np.random.default_rng(1)
     n = sim.model.n_vertices
     free = sim.model.free_np[:, None]

@@ -1,6 +1,6 @@
-"""fem/reduce.py: two-stage sums and maxima per segment equal numpy's, on one segment, on many of
+"""fem/reduce.py: sums and maxima per segment in stages equal numpy's, on one segment, on many of
 uneven sizes (empty ones among them) and on 1000, with contiguous and interleaved chunks, on one
-thread and on many."""
+thread and on many, in two stages (a CPU's) and in more (a GPU's)."""
 
 import numpy as np
 import pytest
@@ -51,21 +51,30 @@ def uneven(count, seed=1):
 CASES = {"one body": np.array([50_000]), "uneven bodies": uneven(37), "1000 bodies": uneven(1000)}
 
 
-@pytest.mark.parametrize("chunk", [CHUNK, 16])
+@pytest.mark.parametrize("chunk, fan_in", [(CHUNK, 0), (16, 0), (CHUNK, 4), (16, 32)])
 @pytest.mark.parametrize("serial", [False, True])
 @pytest.mark.parametrize("interleave", [False, True])
 @pytest.mark.parametrize("case", CASES)
-def test_sums_and_maxima_per_segment_equal_numpy(f32, case, interleave, serial, chunk):
+def test_sums_and_maxima_per_segment_equal_numpy(f32, case, interleave, serial, chunk, fan_in):
     starts = segments(CASES[case])
     values = np.random.default_rng(2).standard_normal((starts[-1], 2))
     expected_sum = np.array([values[a:b].sum(0) if b > a else [0, 0] for a, b in zip(starts, starts[1:])])
     expected_max = np.array([values[a:b].max(0) if b > a else [0, 0]      # the largest, negative or not
                              for a, b in zip(starts, starts[1:])])
     for combine, expected in (("sum", expected_sum), ("max", expected_max)):
-        summed = Summed(values, starts, combine=combine, interleave=interleave, serial=serial, chunk=chunk)
+        summed = Summed(values, starts, combine=combine, interleave=interleave, serial=serial, chunk=chunk,
+                        fan_in=fan_in)
+        assert (len(summed.sums.stages) > 1) == (fan_in > 0 and not serial)      # the stages between ran
         summed.run()
         magnitude = np.array([np.abs(values[a:b]).sum(0) for a, b in zip(starts, starts[1:])])
         assert np.all(np.abs(summed.out.to_numpy() - expected) <= 1e-14 * magnitude)
+
+
+def test_a_long_segment_takes_a_stage_per_fan_in_until_a_thread_can_add_the_rest():
+    # a GPU's default: a 973k-tet one-body sum in chunks of 128 tets: 7,605 partials, then 238, then 8
+    sums = SegmentSums(973_360, 1, 1, ti.f64, chunk=128, fan_in=32, serial=False)
+    sums.load(np.array([0, 973_360]))
+    assert [stage.chunks[None] for stage in sums.stages] == [7605, 238, 8]
 
 
 def test_chunks_cover_each_segment_once_and_hold_at_most_chunk_items():

@@ -16,7 +16,7 @@ import numpy as np
 import taichi as ti
 
 from fem import runtime
-from fem.reduce import CHUNK, SegmentSums
+from fem.reduce import SegmentSums
 
 TET_CHUNK = 16  # tets per chunk of the per-body tet sums on a CPU
 SUMS = 10      # the widest per-body sum: a body's spin (3), inertia (6) and kinetic energy (1)
@@ -40,7 +40,7 @@ class Sleep:
         # a tet's terms are heavy (its rotation, energy and gradient): chunks of TET_CHUNK keep both
         # CPU threads busy to the end (128 made box50k's energy passes 1.5 times as long)
         self.tet_sums = SegmentSums(model.capacity.tets, model.capacity.bodies, 1, ti.f64, serial=serial_tets,
-                                    chunk=TET_CHUNK if runtime.on_cpu() else CHUNK)
+                                    chunk=TET_CHUNK if runtime.on_cpu() else None)
 
     def load(self):
         """A new scene: its bodies' vertex and tet ranges."""
