@@ -40,9 +40,13 @@ import taichi as ti
 
 from fem import runtime
 
-# Items per chunk: a patch of the 973k box (1,330 vertices) in 11 chunks, a one-body sum of its
-# 170k vertices in 1,330 partials. Not measured on a GPU yet: tune it there.
+# Items per chunk on a CPU: a patch of the 973k box (1,330 vertices) in 11 chunks, a one-body sum
+# of its 170k vertices in 1,330 partials.
 CHUNK = 128
+# On a GPU, smaller chunks: 128 left 1,400 threads for a one-body sum of the 973k box, each adding
+# 128 heavy items (a vertex's gradient, gathered from its corners) in turn. Measured on an H100
+# (docs/gpu.md, tools/gpu_tune.py): the 973k box's one-solve step 17.4 ms at 128, 14.7 at 32, 17.3 at 8.
+GPU_CHUNK = 32
 FAN_IN = 32            # partials per chunk in the stages between the first and the last, on a GPU
 LOWEST = -3.4e38       # where a max starts: about float32's lowest number
 
@@ -65,15 +69,15 @@ class SegmentSums:
         stages[k].first_chunk (segments + 1,)    each segment's chunks of stage k + 1
         stages[k].chunk_segment (chunks,)        the segment of each chunk
         stages[k].partial (chunks, width)        the chunks' sums, in `dtype`
-    chunk: items per chunk (CHUNK). combine: "sum", or "max" (the largest value; 0 for an empty
-    segment). serial: the loops run on one thread, a chunk per segment. interleave: chunks
-    interleave (default: on a GPU). fan_in: partials per chunk of the stages between the first
-    and the last (default: FAN_IN on a GPU; 0, none, on a CPU).
+    chunk: items per chunk (CHUNK on a CPU, GPU_CHUNK on a GPU). combine: "sum", or "max" (the
+    largest value; 0 for an empty segment). serial: the loops run on one thread, a chunk per
+    segment. interleave: chunks interleave (default: on a GPU). fan_in: partials per chunk of the
+    stages between the first and the last (default: FAN_IN on a GPU; 0, none, on a CPU).
     """
 
     def __init__(self, items, segments, width, dtype=float, combine="sum", serial=False, interleave=None,
                  chunk=None, fan_in=None):
-        self.chunk = chunk or CHUNK
+        self.chunk = chunk or (CHUNK if runtime.on_cpu() else GPU_CHUNK)
         self.fan_in = (0 if serial or runtime.on_cpu() else FAN_IN) if fan_in is None else fan_in
         self.width, self.dtype, self.combine = width, dtype, combine
         self.serial = serial

@@ -113,6 +113,7 @@ def test_preconditioner_is_symmetric_positive_definite_and_follows_the_body(loop
         monkeypatch.setattr(fem.reduce, "CHUNK", 16)
     if loops == "a GPU's":
         monkeypatch.setattr(fem.runtime, "on_cpu", lambda: False)
+        monkeypatch.setattr(fem.reduce, "GPU_CHUNK", 16)
         monkeypatch.setattr(fem.reduce, "FAN_IN", 2)
         fem.pool.clear()                          # parts made for a CPU's layout are not borrowed,
         request.addfinalizer(fem.pool.clear)      # nor these by later tests

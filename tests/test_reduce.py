@@ -70,7 +70,7 @@ def test_sums_and_maxima_per_segment_equal_numpy(f32, case, interleave, serial, 
         assert np.all(np.abs(summed.out.to_numpy() - expected) <= 1e-14 * magnitude)
 
 
-def test_a_long_segment_takes_a_stage_per_fan_in_until_a_thread_can_add_the_rest():
+def test_a_long_segment_takes_a_stage_per_fan_in_until_a_thread_can_add_the_rest(f32):
     # a GPU's default: a 973k-tet one-body sum in chunks of 128 tets: 7,605 partials, then 238, then 8
     sums = SegmentSums(973_360, 1, 1, ti.f64, chunk=128, fan_in=32, serial=False)
     sums.load(np.array([0, 973_360]))

@@ -1,7 +1,7 @@
 """The step's tunables, timed side by side (issue 36): which chunk sizes and unrolling a GPU wants.
 
     python -m tools.gpu_tune OUT.json [--arch gpu] [--sizes 17,46] [--steps 20] [SETTING ...]
-    python -m tools.gpu_tune OUT.json --arch cpu --sizes 3 --steps 2 CHUNK=16 CG_UNROLL=4,FAN_IN=4
+    python -m tools.gpu_tune OUT.json --arch cpu --sizes 2 --steps 1 CHUNK=16,CG_UNROLL=3
 
 A SETTING is NAME=VALUE[,NAME=VALUE...] over TUNABLES below; the defaults run first, then each
 setting, each on every box of tools/gpu_measure.py (2k x k x k cells, 10 k^3 tets) with the
@@ -23,7 +23,7 @@ import fem.pool
 import fem.reduce
 from tools.gpu_measure import time_case
 
-TUNABLES = {"CHUNK": fem.reduce, "FAN_IN": fem.reduce, "COARSE_PARTS": fem.coarse,
+TUNABLES = {"CHUNK": fem.reduce, "GPU_CHUNK": fem.reduce, "FAN_IN": fem.reduce, "COARSE_PARTS": fem.coarse,
             "CG_UNROLL": fem.implicit.linear}
 
 
