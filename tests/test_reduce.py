@@ -84,3 +84,34 @@ def test_chunks_cover_each_segment_once_and_hold_at_most_chunk_items():
     assert chunk_segment.tolist() == [0, 1, 2, 3, 3] + [4] * 10
     _, one_each = chunk_layout(starts, CHUNK, single=True)
     assert one_each.tolist() == [0, 1, 2, 3, 4, 5]
+
+
+def test_a_gpus_layout_run_on_the_cpu_steps_as_the_cpus_does(f32, monkeypatch, request):
+    """Every sum of the step laid out as on a GPU (interleaved chunks of GPU_CHUNK, stages of
+    FAN_IN between, the coarse product's rows in pieces), run on the CPU: the same motion as the
+    CPU's own layout, to f32 round-off, on a box large enough for the two-level preconditioner."""
+    import dataclasses
+
+    import fem.pool
+    from tools.gpu_measure import box_simulation
+
+    def run():
+        fem.pool.clear()
+        sim = box_simulation(10)
+        sim.settings = dataclasses.replace(sim.settings, step="newton", integrator="auto")
+        for _ in range(5):
+            sim.step()
+        return sim, sim.positions(), sim.stats()["total_energy"]
+
+    request.addfinalizer(fem.pool.clear)           # no later test borrows a solver laid out as on a GPU
+    cpu, x_cpu, energy_cpu = run()
+    assert cpu.solver.preconditioner == "two-level" and len(cpu.solver.sleep.tet_sums.stages) == 1
+    monkeypatch.setattr(fem.runtime, "on_cpu", lambda: False)
+    monkeypatch.setattr(fem.runtime, "PARALLEL_MIN", {"tets": 0, "vertices": 0})
+    monkeypatch.setattr(fem.reduce, "FAN_IN", 4)
+    gpu, x_gpu, energy_gpu = run()
+    assert len(gpu.solver.sleep.tet_sums.stages) > 2 and gpu.solver.patches.parts > 1   # laid out as on a GPU
+    moved = np.abs(x_cpu - cpu.model.rest_positions_np).max()
+    assert moved > 0.01
+    assert np.abs(x_gpu - x_cpu).max() <= 1e-4 * moved
+    assert energy_gpu == pytest.approx(energy_cpu, rel=1e-5)
