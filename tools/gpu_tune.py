@@ -29,11 +29,20 @@ TUNABLES = {"CHUNK": fem.reduce, "GPU_CHUNK": fem.reduce, "FAN_IN": fem.reduce, 
 
 def parse(setting):
     """"CHUNK=32,CG_UNROLL=4" -> {"CHUNK": 32, "CG_UNROLL": 4}."""
-    pairs = dict(part.split("=", 1) for part in setting.split(","))
+    try:
+        pairs = {name: int(value) for name, value in (part.split("=", 1) for part in setting.split(","))}
+    except ValueError:
+        refuse(f"{setting!r} is not NAME=INTEGER[,NAME=INTEGER...]")
     unknown = set(pairs) - set(TUNABLES)
     if unknown:
-        raise SystemExit(f"error: unknown tunable {sorted(unknown)}; known: {sorted(TUNABLES)}")
-    return {name: int(value) for name, value in pairs.items()}
+        refuse(f"unknown tunable {sorted(unknown)}; known: {sorted(TUNABLES)}")
+    return pairs
+
+
+def refuse(why):
+    """Bad input: one error line, exit 2."""
+    print(f"error: {why}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 def apply(values, defaults):
