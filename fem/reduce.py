@@ -25,8 +25,10 @@ of a plain loop, in its order.
 A sum into one number (PCG's dot products r.z, p.Ap, a weighted |r|^2: `s += ...` on a kernel's
 local in a parallel loop) needs none of this: Taichi's thread-local pass already gives every
 thread its own partial and adds the partials once per thread at the loop's end (seen in its
-IR: "tls prologue" / "tls epilogue"). What it cannot do is a sum whose target moves with the
-item, `out[body[i]] += ...`: that is what this module is for.
+IR: "tls prologue" / "tls epilogue"). On a GPU that is once per thread of the loop's grid,
+however short the loop, so fem/runtime.GPU_GRID_BLOCKS keeps the grid small. What it cannot
+do is a sum whose target moves with the item, `out[body[i]] += ...`: that is what this module
+is for.
 
 Use: make a `SegmentSums` beside the fields it sums, `load` the segments' starts (a new
 scene), and call `reduce(value, store, data)` inside a kernel, with two ti.funcs of the

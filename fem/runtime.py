@@ -19,6 +19,12 @@ ARCHES = ("auto", "cpu", "gpu")
 # overflow it, and the next start of a scene compiles again, seconds instead of one).
 OFFLINE_CACHE_BYTES = 512 * 2**20
 PRECISIONS = ("f32", "f64")
+# Blocks (of 128 threads) that a GPU loop runs when its length is known only on the device (every
+# loop over the vertices or tets in use). Taichi's default, 2 x the blocks an SM can hold x the
+# SMs, is 8,448 on an H100: over a million threads for any loop, and a loop that adds into one
+# number (PCG's r.z, p.Ap) then adds every thread's partial at its end, about 70 us whatever the
+# mesh. 0: Taichi's default. Measured (docs/gpu.md, tools/gpu_tune.py).
+GPU_GRID_BLOCKS = 2048
 _current = {}
 
 
@@ -39,7 +45,8 @@ def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False)
     # gpu never probes OpenGL: on a machine without it, Taichi's probe ends the process (segfault).
     settings = (arch, precision, debug)
     running = _current.get("runtime") is ti.lang.impl.get_runtime()
-    if not restart and running and _current.get("settings") == settings and _current.get("profile") == profile:
+    if (not restart and running and _current.get("settings") == settings and _current.get("profile") == profile
+            and _current.get("grid") == GPU_GRID_BLOCKS):
         return _current["arch"]              # running as asked (and nobody called ti.init since)
     if environment.problems():
         raise FemError(environment.problems()[0])
@@ -57,11 +64,11 @@ def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False)
     with contextlib.redirect_stdout(io.StringIO()), taichi_variables_reported():
         ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, debug=debug, offline_cache=True,
                 offline_cache_file_path=cache, offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES,
-                log_level=ti.ERROR, kernel_profiler=profile)
+                log_level=ti.ERROR, kernel_profiler=profile, saturating_grid_dim=GPU_GRID_BLOCKS)
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
         raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
-    _current.update(arch=backend, precision=precision, settings=settings, profile=profile,
+    _current.update(arch=backend, precision=precision, settings=settings, profile=profile, grid=GPU_GRID_BLOCKS,
                     runtime=ti.lang.impl.get_runtime())
     return backend
 

@@ -65,6 +65,22 @@ def test_init_again_with_the_same_settings_keeps_the_kernels_and_a_restart_drops
     fem.init("cpu", "f32", restart=True)                # leave Taichi as fem.init makes it
 
 
+def test_taichi_starts_with_the_gpu_loops_grid_of_fem_runtime_and_again_when_it_changes(monkeypatch):
+    """GPU_GRID_BLOCKS reaches Taichi (its kernels compile with it: a GPU loop's blocks), and
+    tools/gpu_tune.py's change of it restarts Taichi at the next init."""
+    import taichi as ti
+
+    fem.init("cpu", "f32")
+    assert ti.lang.impl.current_cfg().saturating_grid_dim == fem.runtime.GPU_GRID_BLOCKS
+    running = ti.lang.impl.get_runtime()
+    monkeypatch.setattr(fem.runtime, "GPU_GRID_BLOCKS", 512)
+    fem.init("cpu", "f32")
+    assert ti.lang.impl.get_runtime() is not running and ti.lang.impl.current_cfg().saturating_grid_dim == 512
+    monkeypatch.undo()
+    fem.init("cpu", "f32")                               # leave Taichi as fem.init makes it
+    assert ti.lang.impl.current_cfg().saturating_grid_dim == fem.runtime.GPU_GRID_BLOCKS
+
+
 def test_a_functions_source_is_read_once_however_many_kernels_call_it():
     import taichi as ti
     from taichi.lang import kernel_impl

@@ -72,14 +72,15 @@ def test_gpu_tune_times_each_setting_on_a_solver_built_with_it(tmp_path):
     """tools/gpu_tune.py, its docstring's CPU command: the defaults, then each setting, on a box."""
     out = tmp_path / "tune.json"
     run = subprocess.run([sys.executable, "-m", "tools.gpu_tune", str(out), "--arch", "cpu", "--sizes", "2",
-                          "--steps", "1", "CHUNK=16,CG_UNROLL=3"], cwd=ROOT, capture_output=True, text=True, timeout=900)
+                          "--steps", "1", "CHUNK=16,CG_UNROLL=3,GPU_GRID_BLOCKS=512"], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr
     results = json.loads(out.read_text())
-    assert [case["setting"] for case in results["cases"]] == [{}, {"CHUNK": 16, "CG_UNROLL": 3}]
+    assert [case["setting"] for case in results["cases"]] == [{}, {"CHUNK": 16, "CG_UNROLL": 3, "GPU_GRID_BLOCKS": 512}]
     assert results["defaults"]["CG_UNROLL"] == 2 and results["defaults"]["GPU_CHUNK"] == 32
+    assert results["defaults"]["GPU_GRID_BLOCKS"] == 2048
     for case in results["cases"]:
         assert case["tets"] == 80 and case["one-solve"]["ms_median"] > 0 and case["default"]["cg_per_step"] >= 1
-    assert run.stdout.splitlines()[1].startswith("CHUNK=16 CG_UNROLL=3 | 80 | one-solve ")
+    assert run.stdout.splitlines()[1].startswith("CHUNK=16 CG_UNROLL=3 GPU_GRID_BLOCKS=512 | 80 | one-solve ")
     bad = subprocess.run([sys.executable, "-m", "tools.gpu_tune", str(out), "--arch", "cpu", "CHUNKS=3"],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "error: unknown tunable ['CHUNKS']" in bad.stderr

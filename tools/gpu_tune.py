@@ -19,12 +19,14 @@ from pathlib import Path
 import fem
 import fem.coarse
 import fem.implicit.linear
+import fem.implicit.preconditioner
 import fem.pool
 import fem.reduce
+import fem.runtime
 from tools.gpu_measure import time_case
 
 TUNABLES = {"CHUNK": fem.reduce, "GPU_CHUNK": fem.reduce, "FAN_IN": fem.reduce, "COARSE_PARTS": fem.coarse,
-            "CG_UNROLL": fem.implicit.linear}
+            "CG_UNROLL": fem.implicit.linear, "TWO_LEVEL_VERTICES": fem.implicit.preconditioner, "GPU_GRID_BLOCKS": fem.runtime}
 
 
 def parse(setting):
@@ -45,11 +47,15 @@ def refuse(why):
     raise SystemExit(2)
 
 
-def apply(values, defaults):
-    """Set the tunables to the defaults, then to `values`; the next Simulation builds with them."""
+def apply(values, defaults, arch=None):
+    """Set the tunables to the defaults, then to `values`; the next Simulation builds with them
+    (Taichi restarts on `arch` when GPU_GRID_BLOCKS changes: its kernels compile with it)."""
+    grid = fem.runtime.GPU_GRID_BLOCKS
     for name, value in {**defaults, **values}.items():
         setattr(TUNABLES[name], name, value)
     fem.pool.clear()                    # solvers kept from a case before were built with other values
+    if arch and fem.runtime.GPU_GRID_BLOCKS != grid:
+        fem.init(arch, "f32")
 
 
 def main(argv=None):
@@ -69,7 +75,7 @@ def main(argv=None):
     out = Path(args.out)
     for k in sizes:
         for values in settings:
-            apply(values, defaults)
+            apply(values, defaults, args.arch)
             case = {"setting": values, **time_case(k, args.steps)}
             results["cases"].append(case)
             out.write_text(json.dumps(results, indent=1))
