@@ -90,8 +90,11 @@ class VideoWriter:
                                "the video was not written")
         if error is not None and error.errno in outputs.WRITE_ERRORS or free < FULL_DISK_BYTES:
             reason = "no space left on device"
+        elif error is not None:     # imageio's error: the broken pipe, or ffmpeg's exit status
+            said = (str(error).strip().splitlines() or [""])[0][:120]
+            reason = f"the encoder failed ({type(error).__name__}: {said})"
         else:
-            reason = "the encoder failed"
+            reason = "the encoder failed (its file is incomplete)"
         return VideoFailed(f"{self.path}: {reason}; the video was not written")
 
     def __exit__(self, kind, error, traceback):

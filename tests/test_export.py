@@ -163,3 +163,20 @@ def test_the_camera_backs_off_when_a_body_would_leave_the_picture():
     direction = lambda c: (c.eye - c.target) / np.linalg.norm(c.eye - c.target)  # noqa: E731
     np.testing.assert_allclose(direction(wider), direction(camera))  # the same view, from further
     assert widened(wider, framed, box, 4 / 3)[0] is wider            # and it never comes back closer
+
+
+def test_a_failed_encoder_is_reported_with_its_cause(tmp_path):
+    """The message names what the encoder said (a broken pipe, ffmpeg's status), or that its file
+    is incomplete: a failure someone cannot reproduce can still be told apart."""
+    import errno
+
+    from app.video import VideoWriter
+
+    writer = VideoWriter(tmp_path / "v.mp4", 25)
+    broken = str(writer.failed(BrokenPipeError(errno.EPIPE, "Broken pipe")))
+    assert broken == f"{tmp_path / 'v.mp4'}: the encoder failed (BrokenPipeError: [Errno 32] Broken pipe); " \
+                     "the video was not written"
+    said = str(writer.failed(OSError("FFMPEG returned error code 1\n\nFFMPEG COMMAND:\nffmpeg -y ...")))
+    assert "(OSError: FFMPEG returned error code 1)" in said and "COMMAND" not in said
+    assert "the encoder failed (its file is incomplete)" in str(writer.failed())
+    assert "no space left on device" in str(writer.failed(OSError(errno.ENOSPC, "No space left on device")))
