@@ -84,3 +84,9 @@ def test_gpu_tune_times_each_setting_on_a_solver_built_with_it(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "tools.gpu_tune", str(out), "--arch", "cpu", "CHUNKS=3"],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "error: unknown tunable ['CHUNKS']" in bad.stderr
+    for setting, said in (("GPU_GRID_BLOCKS=-1", "GPU_GRID_BLOCKS=-1: must be 0 (Taichi's own grid) or a positive integer"),
+                          ("CHUNK=0", "CHUNK=0: must be a positive integer")):
+        bad = subprocess.run([sys.executable, "-m", "tools.gpu_tune", str(tmp_path / "no.json"), "--arch", "cpu", setting],
+                             cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert (bad.returncode, bad.stderr.strip()) == (2, f"error: {said}")
+        assert not (tmp_path / "no.json").exists()

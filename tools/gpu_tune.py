@@ -38,6 +38,10 @@ def parse(setting):
     unknown = set(pairs) - set(TUNABLES)
     if unknown:
         refuse(f"unknown tunable {sorted(unknown)}; known: {sorted(TUNABLES)}")
+    for name, value in pairs.items():
+        if value < (0 if name == "GPU_GRID_BLOCKS" else 1):
+            refuse(f"{name}={value}: must be " + ("0 (Taichi's own grid) or " if name == "GPU_GRID_BLOCKS" else "")
+                   + "a positive integer")
     return pairs
 
 
