@@ -39,9 +39,9 @@ def parse(setting):
     if unknown:
         refuse(f"unknown tunable {sorted(unknown)}; known: {sorted(TUNABLES)}")
     for name, value in pairs.items():
-        if value < (0 if name == "GPU_GRID_BLOCKS" else 1):
-            refuse(f"{name}={value}: must be " + ("0 (Taichi's own grid) or " if name == "GPU_GRID_BLOCKS" else "")
-                   + "a positive integer")
+        if value < 1 and not (name == "GPU_GRID_BLOCKS" and value == 0):
+            zero = "0 (Taichi's own grid) or " if name == "GPU_GRID_BLOCKS" else ""
+            refuse(f"{name}={value}: must be {zero}a positive integer")
     return pairs
 
 
@@ -53,12 +53,11 @@ def refuse(why):
 
 def apply(values, defaults, arch=None):
     """Set the tunables to the defaults, then to `values`; the next Simulation builds with them
-    (Taichi restarts on `arch` when GPU_GRID_BLOCKS changes: its kernels compile with it)."""
-    grid = fem.runtime.GPU_GRID_BLOCKS
+    (fem.init on `arch` restarts Taichi when GPU_GRID_BLOCKS changed: its kernels compile with it)."""
     for name, value in {**defaults, **values}.items():
         setattr(TUNABLES[name], name, value)
     fem.pool.clear()                    # solvers kept from a case before were built with other values
-    if arch and fem.runtime.GPU_GRID_BLOCKS != grid:
+    if arch:
         fem.init(arch, "f32")
 
 
