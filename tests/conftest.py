@@ -1,14 +1,24 @@
 """Shared test fixtures: Taichi on the CPU, and small scenes built in Python."""
 
+import os
 import signal
 from pathlib import Path
 
-import numpy as np
-import pytest
+# Nine tenths of the suite's time was Taichi compiling kernels, not running them: each test builds
+# small scenes once, and each new set of fields (precision, effects, size) compiles the step again.
+# Taichi's IR optimisations off compiles a kernel in about 0.7 times the time (tests/test_trapezoidal.py
+# with a cold cache: 134 -> 100 s) and runs it about 1.3 times slower (box50k: 51 -> 65 ms a step),
+# to round-off the same results. Set before Taichi starts, so every test process and every command a
+# test runs (they inherit this environment) compiles so; the app and the benchmark keep Taichi's
+# default. TI_ADVANCED_OPTIMIZATION=1 in the environment tests the default build.
+os.environ.setdefault("TI_ADVANCED_OPTIMIZATION", "0")
 
-import fem
-from fem.scene import Body, Effects, Material, Scene, SolverSettings
-from scenes.hard_cases import cube
+import numpy as np  # noqa: E402 (after the setting above)
+import pytest  # noqa: E402
+
+import fem  # noqa: E402
+from fem.scene import Body, Effects, Material, Scene, SolverSettings  # noqa: E402
+from scenes.hard_cases import cube  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CGGS = ROOT.parent / "shared" / "cggs"

@@ -3,8 +3,9 @@
 Every built-in scene with both methods, both step kinds and both precisions, and every
 hard-case group's end state, is hashed (sha256 of the float arrays' bytes) and compared with
 `step_hashes.json`. The compiled kernels' arithmetic depends on the processor (LLVM picks
-vector instructions and fused multiply-adds for it) and on Taichi's version, so the file keys
-its hashes by both; on another machine the test skips and says how to record them there.
+vector instructions and fused multiply-adds for it), on Taichi's version and on whether its IR
+optimisations ran (tests/conftest.py turns them off), so the file keys its hashes by all three;
+on another machine the test skips and says how to record them there.
 A scene added since the hashes were recorded is reported, not compared.
 A surface tetrahedralised at first use (the bunny) is not the same mesh twice (wildmeshing
 is not deterministic): each scene's hash is stored with its meshes' digest, and a scene
@@ -47,7 +48,8 @@ def machine():
                 features = {f for f in value.split() if f.startswith(("avx", "fma", "sse4"))}
     except OSError:
         pass
-    return f"{model} [{' '.join(sorted(features))}] taichi {'.'.join(map(str, ti.__version__))}"
+    build = " unoptimised" if os.environ.get("TI_ADVANCED_OPTIMIZATION") == "0" else ""   # conftest.py
+    return f"{model} [{' '.join(sorted(features))}] taichi {'.'.join(map(str, ti.__version__))}{build}"
 
 
 def digest(sim):
