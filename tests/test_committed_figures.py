@@ -21,11 +21,12 @@ RELATIVE, ABSOLUTE = 0.05, 1e-2
 # compiled for AVX-512 or AVX2 add in another order) and between runs on one machine (166,632 J here,
 # 97,646 J there at the third point): the one-solve step at dt 0.5 s on the hard case agrees for its
 # first FIRST_STEPS energies only. Of the rest, what is stable is compared (unstable_features): the
-# step at which it rises past RISE times its start, that every energy is positive, and the order of
-# magnitude (a factor DECADE) of the largest.
+# step at which it rises past RISE times its start, and that every energy is positive. How large the
+# blown-up energies get is not: 5.6e13 J at most in the committed run, 2.6e15 J with the tests' build
+# of the same kernels (tests/conftest.py), 1e9 times the start either way.
 UNSTABLE = {"hard_case_energy.total_energy.single"}
 FIRST_STEPS = 2
-RISE, DECADE = 10.0, 10.0
+RISE = 10.0
 # The Newton step on the hard case takes 98 % of the energy away in its first step (f32); what is left
 # carries the round-off of what was taken (4 to 5 % of it between an AVX-512 and an AVX2 processor), so
 # its energies agree to 5 % or to START_SHARE of the run's start energy.
@@ -68,10 +69,9 @@ def unstable_features(energies):
 
 
 def same_blow_up(made, committed):
-    """Two blown-up runs agree: the same rise step and sign, largest energies within a factor DECADE."""
-    (rise, positive, largest), (rise_c, positive_c, largest_c) = map(unstable_features, (made, committed))
-    return (rise, positive) == (rise_c, positive_c) and positive and \
-        max(largest, largest_c) < DECADE * min(largest, largest_c)
+    """Two blown-up runs agree: they rise past RISE times their start at the same step, and stay positive."""
+    (rise, positive, _), (rise_c, positive_c, _) = map(unstable_features, (made, committed))
+    return rise is not None and (rise, positive) == (rise_c, positive_c) and positive
 
 
 @pytest.fixture(scope="module")
