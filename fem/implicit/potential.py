@@ -251,7 +251,7 @@ class IncrementalPotential:
         counts as not converged: v = 0 is no answer for a moving body, even one so stiff (in f32)
         that its whole gradient is below the floor; it would stop dead. (From the guess, the
         gradient alone tells: a guess within the tolerance is the answer.)"""
-        rho = ti.cast(0.0, ti.f64)
+        rho, total = ti.cast(0.0, ti.f64), ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b]),
@@ -260,7 +260,8 @@ class IncrementalPotential:
             if first and self.body_momentum[b] > self.body_floor[b] and not moving:
                 ratio += 2.0
             rho = ti.max(rho, ratio)
-        return rho
+            total += ratio
+        return rho + 0.0 * total           # max drops a NaN; the sum keeps it (a broken step stays broken)
 
     # ------------------------------------------------------------ H u
 
