@@ -75,3 +75,42 @@ def test_section_8_the_coursework_fertility_table(method, cggs, tmp_path):
     assert inverted[1] == pytest.approx(soft, abs=COUNT_SPREAD)
     assert inverted[0] == pytest.approx(stiff, abs=COUNT_SPREAD)
     assert min(ratios) == pytest.approx(least, abs=RATIO_SPREAD) and max(ratios) == pytest.approx(most, abs=RATIO_SPREAD)
+
+
+# Section 3: cube86 over 50 steps at each nu: CG iterations a step, steps not converged, the soft cube's volume ratio
+SECTION_3 = {0.3: (4.4, 1, "1.011"), 0.45: (12.6, 1, "0.997"), 0.499: (37, 49, "1.0000")}
+ITERATIONS_SPREAD, UNCONVERGED_SPREAD = 0.1, 2
+
+
+@pytest.mark.parametrize("nu", list(SECTION_3))
+def test_section_3_cube86_towards_incompressible(nu):
+    iterations, unconverged, ratio = SECTION_3[nu]
+    stated(f"| {nu} | {iterations} | {unconverged} of 50 | {ratio} |", "(within\n10 %), a step or two more or fewer",
+           "the volume ratios within 0.003")
+    text = summary("cube86", "--set", f"body.*.material.nu={nu}", "--steps", "50")
+    got = re.search(r"([\d.]+) solver iterations/step .*, (\d+) steps not converged", text)
+    assert float(got.group(1)) == pytest.approx(iterations, rel=ITERATIONS_SPREAD)
+    assert abs(int(got.group(2)) - unconverged) <= UNCONVERGED_SPREAD
+    assert volume_ratios(text)["soft"] == pytest.approx(float(ratio), abs=VOLUME_SPREAD)
+
+
+# Section 4: cube86 at nu 0.4999, 50 steps at each dt: the Newton step's total energy after its first
+# step and at the end (J); the one-solve step's largest energy passes BLOWN_UP J (a blow-up: only that repeats)
+NEWTON_FIRST, NEWTON_END = 1.9, {0.02: 1.56, 0.1: 0.71, 0.5: 0.76}
+BLOWN_UP, NEWTON_SPREAD = 1e9, 0.05
+
+
+@pytest.mark.parametrize("dt", list(NEWTON_END))
+def test_section_4_the_one_solve_step_blows_up_where_newton_keeps_the_energy(dt, tmp_path):
+    stated("has 1.9 J after its first step", f"| {dt} s | ", f" | {NEWTON_END[dt]} J |", "above 1e9 J at every dt",
+           "within 5 % of these")
+    energies = {}
+    for step in ("single", "newton"):
+        stats = tmp_path / f"{step}.jsonl"
+        summary("cube86", "--set", "body.*.material.nu=0.4999", "--dt", str(dt), "--step", step, "--steps", "50",
+                "--stats", str(stats))
+        energies[step] = [json.loads(line)["total_energy"] for line in stats.read_text().splitlines()]
+    assert max(energies["single"]) > BLOWN_UP
+    newton = energies["newton"]
+    assert newton[0] == pytest.approx(NEWTON_FIRST, rel=NEWTON_SPREAD)
+    assert newton[-1] == pytest.approx(NEWTON_END[dt], rel=NEWTON_SPREAD)
