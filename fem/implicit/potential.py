@@ -40,11 +40,6 @@ import taichi as ti
 from fem.elastic import corner_forces, energy_density, linear_stress
 
 ROUNDOFF = 30.0          # per-body floors of the stopping tests, in units of the precision's epsilon
-# The gradient's own floor (Model.body_floor: GRADIENT_ROUNDOFF eps h E L^2). Measured in f32, the
-# gradient's round-off (the engine's against numpy's float64 sum at the same state) is 0.15 to 0.95
-# eps h E L^2 on bars of 162 to 83k tets, E 5e4 to 1e9, 20 m from the origin; ROUNDOFF's 30 let a
-# step count as converged at 3.5 times the tolerance (tests/test_energy_scheme.py)
-GRADIENT_ROUNDOFF = 3.0
 
 
 @ti.data_oriented
