@@ -276,7 +276,7 @@ def test_stdout_on_a_full_disk_is_one_error(tmp_path, argv):
     with open("/dev/full", "w") as full:
         code, err = main_py(*argv, cwd=tmp_path, stdout=full)
     assert code == 2, err
-    one_error_line(err, "error: standard output: no space left on device")
+    final_error_line(err, "error: standard output: no space left on device")   # found when the summary is written
     assert list(tmp_path.iterdir()) == []
 
 
@@ -305,7 +305,7 @@ def test_stats_into_a_redirected_stdout_is_refused_and_dev_stdout_stays(tmp_path
 def test_stats_on_a_full_disk_is_one_error():
     code, out, err = run("simulate", "cube86", "--steps", "2", "--stats", "/dev/full")
     assert code == 2
-    one_error_line(err, "/dev/full: no space left on device")
+    final_error_line(err, "/dev/full: no space left on device")
 
 
 # ---------------------------------------------------------------- names
