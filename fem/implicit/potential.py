@@ -254,9 +254,9 @@ class IncrementalPotential:
         rho, total = ti.cast(0.0, ti.f64), ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            self.body_weight[b] = ti.cast(1.0 / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b]),
-                                          float)
-            ratio = self.body_gradient[b] / (tolerance * tolerance * self.body_scale[b] + self.body_floor[b])
+            allowed = tolerance * tolerance * self.body_scale[b] + self.body_floor[b]
+            self.body_weight[b] = ti.cast(1.0 / allowed, float)
+            ratio = self.body_gradient[b] / allowed
             if first and self.body_momentum[b] > self.body_floor[b] and not moving:
                 ratio += 2.0
             rho = ti.max(rho, ratio)
