@@ -83,8 +83,9 @@ def test_the_plate_bounces_off_the_block(runs, name, precision, dt):
     less it is above the block; in one step of 0.1 s at 100 m/s the block wraps around it.
     (Not "it still moves up at the end": at 100 m/s the plate is stretched to many times its
     thickness, part of it pressed into the dented block, and its recoil in the last step turns it
-    down again on some CPUs and not on others (f32, dt 0.01 s: -2.7 m/s against the block's +0.8
-    on an AMD EPYC, up on the Intel machines before it). How a crushed plate rings is round-off.)"""
+    down again on some machines and not on others (f32, dt 0.01 s: -2.7 m/s against the block's
+    +0.8 on one AMD EPYC, up on the machines before it, same code). How a crushed plate rings is
+    round-off.)"""
     out = runs[(name, precision, dt)]
     block, plate = out["bodies"]
     x = out["x"]
