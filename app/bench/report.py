@@ -302,8 +302,8 @@ def kernel_profile(results):
              "device launches (a task per top-level loop of a kernel); *share*: of the median step, whose time "
              "outside kernels is Python, launching and waiting. Bytes need CUDA's CUPTI counters: n/a on a CPU. "
              "On a GPU, `python -m tools.gpu_measure OUT.md --arch gpu` times box bars of 49k to 2M tets and "
-             "prints these tables for 49k and 973k: docs/gpu.md has them for an NVIDIA H100 80GB HBM3, with the "
-             "bytes each kernel moves as Nsight Compute counts them (`tools/gpu_bytes.py`).",
+             "prints these tables for 49k and 973k: docs/gpu.md has them for an NVIDIA H100 80GB HBM3 (and an "
+             "H200's bytes), with the bytes each kernel moves as Nsight Compute counts them (`tools/gpu_bytes.py`).",
              ""]
     for kind, table in p["kinds"].items():
         lines += [f"**{kind} step**, {table['ms_median']:.3g} ms/step median with the profiler on:", "",
