@@ -300,8 +300,11 @@ class Patches:
         thread reads its row as a column, and the loads of neighbouring threads coalesce."""
         size = 6 * self.count[None]
         width = (size + self.parts - 1) // self.parts
+        threads = size * self.parts * on
         ti.loop_config(serialize=self.serial)
-        for t in range(size * self.parts * on):
+        for t in range(6 * self.capacity * self.parts if ti.static(self.sums.capacity_loops) else threads):
+            if t >= threads:
+                continue
             row, part = t % size, t // size
             s = 0.0
             for col in range(part * width, ti.min(size, part * width + width)):

@@ -75,15 +75,18 @@ class SegmentSums:
     largest value; 0 for an empty segment). serial: the loops run on one thread, a chunk per
     segment. interleave: chunks interleave (default: on a GPU). fan_in: partials per chunk of the
     stages between the first and the last (default: FAN_IN on a GPU; 0, none, on a CPU).
+    capacity_loops: loops over the fields' capacity, a constant, skipping what is not in use
+    (default: fem/runtime.capacity_loops()).
     """
 
     def __init__(self, items, segments, width, dtype=float, combine="sum", serial=False, interleave=None,
-                 chunk=None, fan_in=None):
+                 chunk=None, fan_in=None, capacity_loops=None):
         self.chunk = chunk or (CHUNK if runtime.on_cpu() else GPU_CHUNK)
         self.fan_in = (0 if serial or runtime.on_cpu() else FAN_IN) if fan_in is None else fan_in
         self.width, self.dtype, self.combine = width, dtype, combine
         self.serial = serial
         self.interleave = not runtime.on_cpu() if interleave is None else interleave
+        self.capacity_loops = runtime.capacity_loops() if capacity_loops is None else capacity_loops
         self.start = ti.field(ti.i32, segments + 1)
         self.segments = ti.field(ti.i32, ())
         self.stages = []
@@ -142,8 +145,11 @@ class SegmentSums:
         """For every segment s: store(s, the sum (or max) of value(j, s, data) over its items j, data).
         on = 0: nothing (a PCG iteration that has converged)."""
         first = self.stages[0]
+        chunks = first.chunks[None] * on
         ti.loop_config(serialize=self.serial)
-        for c in range(first.chunks[None] * on):
+        for c in range(first.capacity if ti.static(self.capacity_loops) else chunks):
+            if c >= chunks:
+                continue
             s, begin, n, stride = self.units(c, first, self.start)
             total = self._nothing()
             for t in range(n):
@@ -151,15 +157,21 @@ class SegmentSums:
             first.partial[c] = total
         for k in ti.static(range(1, len(self.stages))):      # a GPU's stages between: FAN_IN partials a chunk
             stage, before = self.stages[k], self.stages[k - 1]
-            for c in range(stage.chunks[None] * on):
+            chunks_k = stage.chunks[None] * on
+            for c in range(stage.capacity if ti.static(self.capacity_loops) else chunks_k):
+                if c >= chunks_k:
+                    continue
                 s, begin, n, stride = self.units(c, stage, before.first_chunk)
                 total = self._nothing()
                 for t in range(n):
                     total = self._join(total, before.partial[begin + t * stride])
                 stage.partial[c] = total
         last = self.stages[ti.static(len(self.stages) - 1)]
+        segments = self.segments[None] * on
         ti.loop_config(serialize=self.serial)
-        for s in range(self.segments[None] * on):
+        for s in range(self.start.shape[0] - 1 if ti.static(self.capacity_loops) else segments):
+            if s >= segments:
+                continue
             total = last.partial[last.first_chunk[s]]       # not 0 + partial: a serial sum stays bit for bit
             for c in range(last.first_chunk[s] + 1, last.first_chunk[s + 1]):
                 total = self._join(total, last.partial[c])
@@ -173,6 +185,7 @@ class Stage:
     """One stage's chunks: which segment each belongs to, each segment's first, and their partials."""
 
     def __init__(self, capacity, segments, width, dtype):
+        self.capacity = capacity
         self.chunk_segment = ti.field(ti.i32, capacity)
         self.first_chunk = ti.field(ti.i32, segments + 1)
         self.partial = ti.Vector.field(width, dtype, capacity)

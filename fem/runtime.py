@@ -25,6 +25,14 @@ PRECISIONS = ("f32", "f64")
 # number (PCG's r.z, p.Ap) then adds every thread's partial at its end, about 70 us whatever the
 # mesh. 0: Taichi's default. Measured (docs/gpu.md, tools/gpu_tune.py).
 GPU_GRID_BLOCKS = 2048
+# On a GPU, the PCG iteration's loops (fem/implicit/linear.py, the coarse level's passes and every
+# sum in stages, fem/reduce.py) run over their fields' capacity, a constant when the kernel
+# compiles, when this is 1: Taichi then sizes such a loop's grid to it (at most GPU_GRID_BLOCKS),
+# where a loop whose length only the device knows always runs GPU_GRID_BLOCKS blocks, and the
+# items past the count in use are skipped. A small mesh pays for a large grid (docs/gpu.md:
+# halving the grid took box50k's one-solve step from 4.9 to 3.1 ms on an H200). 0 until measured
+# on a GPU (`tools/gpu_tune.py ... GPU_CAPACITY_LOOPS=1`); a CPU ignores it.
+GPU_CAPACITY_LOOPS = 0
 _current = {}
 
 
@@ -146,6 +154,11 @@ PARALLEL_MIN = {"tets": 8000, "vertices": 30000}
 def on_cpu():
     """True when Taichi runs on the CPU (x64 or arm64)."""
     return _current.get("arch") in ("x64", "arm64")
+
+
+def capacity_loops():
+    """True when the PCG iteration's loops run over their fields' capacity (GPU_CAPACITY_LOOPS, on a GPU)."""
+    return bool(GPU_CAPACITY_LOOPS) and not on_cpu()
 
 
 def serial_loops(count, kind):

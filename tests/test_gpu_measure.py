@@ -77,7 +77,7 @@ def test_gpu_tune_times_each_setting_on_a_solver_built_with_it(tmp_path):
     results = json.loads(out.read_text())
     assert [case["setting"] for case in results["cases"]] == [{}, {"CHUNK": 16, "CG_UNROLL": 3, "GPU_GRID_BLOCKS": 512}]
     assert results["defaults"]["CG_UNROLL"] == 2 and results["defaults"]["GPU_CHUNK"] == 32
-    assert results["defaults"]["GPU_GRID_BLOCKS"] == 2048
+    assert results["defaults"]["GPU_GRID_BLOCKS"] == 2048 and results["defaults"]["GPU_CAPACITY_LOOPS"] == 0
     for case in results["cases"]:
         assert case["tets"] == 80 and case["one-solve"]["ms_median"] > 0 and case["default"]["cg_per_step"] >= 1
     assert run.stdout.splitlines()[1].startswith("CHUNK=16 CG_UNROLL=3 GPU_GRID_BLOCKS=512 | 80 | one-solve ")
@@ -85,6 +85,7 @@ def test_gpu_tune_times_each_setting_on_a_solver_built_with_it(tmp_path):
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "error: unknown tunable ['CHUNKS']" in bad.stderr
     for setting, said in (("GPU_GRID_BLOCKS=-1", "GPU_GRID_BLOCKS=-1: must be 0 (Taichi's own grid) or a positive integer"),
+                          ("GPU_CAPACITY_LOOPS=-1", "GPU_CAPACITY_LOOPS=-1: must be 0 (off) or a positive integer"),
                           ("CHUNK=0", "CHUNK=0: must be a positive integer")):
         bad = subprocess.run([sys.executable, "-m", "tools.gpu_tune", str(tmp_path / "no.json"), "--arch", "cpu", setting],
                              cwd=ROOT, capture_output=True, text=True, timeout=300)

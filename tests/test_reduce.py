@@ -12,13 +12,15 @@ from fem.reduce import CHUNK, SegmentSums, chunk_layout
 
 @ti.data_oriented
 class Summed:
-    """values (n, 2) summed (or maximised) per segment into out (segments, 2), in float64."""
+    """values (n, 2) summed (or maximised) per segment into out (segments, 2), in float64;
+    room: fields and sums for that many more items and segments than are in use."""
 
-    def __init__(self, values, starts, **options):
-        self.values = ti.Vector.field(2, ti.f64, len(values))
-        self.values.from_numpy(values)
-        self.out = ti.Vector.field(2, ti.f64, len(starts) - 1)
-        self.sums = SegmentSums(len(values), len(starts) - 1, 2, ti.f64, **options)
+    def __init__(self, values, starts, room=0, **options):
+        self.values = ti.Vector.field(2, ti.f64, len(values) + room)
+        self.values.from_numpy(np.pad(values, ((0, room), (0, 0))))
+        self.out = ti.Vector.field(2, ti.f64, len(starts) - 1 + room)
+        self.out.fill(UNTOUCHED)
+        self.sums = SegmentSums(len(values) + room, len(starts) - 1 + room, 2, ti.f64, **options)
         self.sums.load(starts)
 
     @ti.func
@@ -33,6 +35,9 @@ class Summed:
     def run(self):
         self.sums.reduce(self.value, self.store, self.values)
 
+
+
+UNTOUCHED = 7.0
 
 
 def segments(sizes):
@@ -70,6 +75,27 @@ def test_sums_and_maxima_per_segment_equal_numpy(f32, case, interleave, serial, 
         assert np.all(np.abs(summed.out.to_numpy() - expected) <= 1e-14 * magnitude)
 
 
+@pytest.mark.parametrize("fan_in", [0, 4])
+def test_loops_over_the_capacity_skip_what_is_not_in_use(f32, fan_in):
+    """fem/runtime.GPU_CAPACITY_LOOPS: each stage loops over its fields' capacity (a constant, so
+    that a GPU's grid fits the mesh) and skips the chunks and segments not in use. On a model
+    smaller than its capacity the sums are those of loops over what is in use, bit for bit, and
+    the segments past it are not written."""
+    starts = segments(CASES["uneven bodies"])
+    values = np.random.default_rng(3).standard_normal((starts[-1], 2))
+    outs = []
+    for capacity_loops in (False, True):
+        summed = Summed(values, starts, room=500, interleave=True, chunk=16, fan_in=fan_in,
+                        capacity_loops=capacity_loops)
+        summed.run()
+        outs.append(summed.out.to_numpy())
+    used = len(starts) - 1
+    expected = np.array([values[a:b].sum(0) if b > a else [0, 0] for a, b in zip(starts, starts[1:])])
+    np.testing.assert_allclose(outs[1][:used], expected, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(outs[1], outs[0])
+    assert np.all(outs[1][used:] == UNTOUCHED)
+
+
 def test_a_long_segment_takes_a_stage_per_fan_in_until_a_thread_can_add_the_rest(f32):
     # a GPU's default: a 973k-tet one-body sum in chunks of 128 tets: 7,605 partials, then 238, then 8
     sums = SegmentSums(973_360, 1, 1, ti.f64, chunk=128, fan_in=32, serial=False)
@@ -89,7 +115,8 @@ def test_chunks_cover_each_segment_once_and_hold_at_most_chunk_items():
 def test_a_gpus_layout_run_on_the_cpu_steps_as_the_cpus_does(f32, monkeypatch, request):
     """Every sum of the step laid out as on a GPU (interleaved chunks of GPU_CHUNK, stages of
     FAN_IN between, the coarse product's rows in pieces), run on the CPU: the same motion as the
-    CPU's own layout, to f32 round-off, on a box large enough for the two-level preconditioner."""
+    CPU's own layout, to f32 round-off, on a box large enough for the two-level preconditioner;
+    also with the PCG iteration's loops over the fields' capacity (fem/runtime.GPU_CAPACITY_LOOPS)."""
     import dataclasses
 
     import fem.pool
@@ -115,3 +142,10 @@ def test_a_gpus_layout_run_on_the_cpu_steps_as_the_cpus_does(f32, monkeypatch, r
     assert moved > 0.01
     assert np.abs(x_gpu - x_cpu).max() <= 1e-4 * moved
     assert energy_gpu == pytest.approx(energy_cpu, rel=1e-5)
+    monkeypatch.setattr(fem.runtime, "GPU_CAPACITY_LOOPS", 1)     # and the PCG loops over the capacity
+    fitted, x_fitted, energy_fitted = run()
+    model = fitted.model
+    assert fitted.solver.linear.capacity_loops and fitted.solver.patches.sums.capacity_loops
+    assert model.capacity.vertices > model.n_vertices and model.capacity.tets > model.n_tets   # loops skip some
+    assert np.abs(x_fitted - x_cpu).max() <= 1e-4 * moved
+    assert energy_fitted == pytest.approx(energy_cpu, rel=1e-5)

@@ -1,6 +1,7 @@
 """The step's tunables, timed side by side (issue 36): which chunk sizes and unrolling a GPU wants.
 
     python -m tools.gpu_tune OUT.json [--arch gpu] [--sizes 17,46] [--steps 20] [SETTING ...]
+    python -m tools.gpu_tune OUT.json --sizes 17,46 GPU_CAPACITY_LOOPS=1         # the next GPU run's question
     python -m tools.gpu_tune OUT.json --arch cpu --sizes 2 --steps 1 CHUNK=16,CG_UNROLL=3
 
 A SETTING is NAME=VALUE[,NAME=VALUE...] over TUNABLES below; the defaults run first, then each
@@ -26,7 +27,9 @@ import fem.runtime
 from tools.gpu_measure import time_case
 
 TUNABLES = {"CHUNK": fem.reduce, "GPU_CHUNK": fem.reduce, "FAN_IN": fem.reduce, "COARSE_PARTS": fem.coarse,
-            "CG_UNROLL": fem.implicit.linear, "TWO_LEVEL_VERTICES": fem.implicit.preconditioner, "GPU_GRID_BLOCKS": fem.runtime}
+            "CG_UNROLL": fem.implicit.linear, "TWO_LEVEL_VERTICES": fem.implicit.preconditioner, "GPU_GRID_BLOCKS": fem.runtime,
+            "GPU_CAPACITY_LOOPS": fem.runtime}
+ZERO_ALLOWED = {"GPU_GRID_BLOCKS": "0 (Taichi's own grid)", "GPU_CAPACITY_LOOPS": "0 (off)"}
 
 
 def parse(setting):
@@ -39,8 +42,8 @@ def parse(setting):
     if unknown:
         refuse(f"unknown tunable {sorted(unknown)}; known: {sorted(TUNABLES)}")
     for name, value in pairs.items():
-        if value < 1 and not (name == "GPU_GRID_BLOCKS" and value == 0):
-            zero = "0 (Taichi's own grid) or " if name == "GPU_GRID_BLOCKS" else ""
+        if value < 1 and not (name in ZERO_ALLOWED and value == 0):
+            zero = f"{ZERO_ALLOWED[name]} or " if name in ZERO_ALLOWED else ""
             refuse(f"{name}={value}: must be {zero}a positive integer")
     return pairs
 

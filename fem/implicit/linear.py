@@ -23,6 +23,8 @@ Fields (n vertices of the capacity):
 import numpy as np
 import taichi as ti
 
+from fem import runtime
+
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
 TWO_I32 = ti.types.vector(2, ti.i32)
 
@@ -38,6 +40,7 @@ class LinearSolver:
         self.model, self.potential, self.elasticity = model, potential, elasticity
         self.preconditioning, self.effects, self.sleep = preconditioning, effects, sleep
         self.serial_tets, self.serial_vertices = switches.serial_tets, switches.serial_vertices
+        self.capacity_loops = runtime.capacity_loops()        # loops over the capacity (a GPU's grid fits it)
         vec = lambda size: ti.Vector.field(3, float, size)   # noqa: E731
         self.solution = vec(n)
         self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n)
@@ -114,18 +117,23 @@ class LinearSolver:
         (`active`, the iterations so far).
         """
         n_tets, n = self.model.tet_count[None], self.model.vertex_count[None]
+        fixed = ti.static(self.capacity_loops)
+        all_tets, all_vertices = ti.static(self.model.capacity.tets, self.model.capacity.vertices)
         for _ in ti.static(range(unroll)):
             on = self.active[None]
             beta = self.cg_beta[None]
+            tets, vertices = n_tets * on, n * on
             ti.loop_config(serialize=self.serial_tets)
-            for e in range(n_tets * on):
-                if self.sleep.tet_awake(e):
+            for e in range(all_tets if fixed else tets):
+                if e < tets and self.sleep.tet_awake(e):
                     self.elasticity.tet_stiffness(e, self.z, self.p, beta)
             if ti.static(self.effects.has_contact):
                 self.effects.contact.product_pass(self.z, self.p, beta, on)
             pAp = 0.0
             ti.loop_config(serialize=self.serial_vertices)
-            for i in range(n * on):
+            for i in range(all_vertices if fixed else vertices):
+                if i >= vertices:
+                    continue
                 p = self.z[i] + beta * self.p[i]
                 self.p[i] = p
                 Ap = self.potential.apply_H(i, self.p, cM, cK)
@@ -136,7 +144,9 @@ class LinearSolver:
                 step = self.rz[None] / pAp
             rz, rr = 0.0, 0.0
             ti.loop_config(serialize=self.serial_vertices)
-            for i in range(n * on):
+            for i in range(all_vertices if fixed else vertices):
+                if i >= vertices:
+                    continue
                 self.solution[i] += step * self.p[i]
                 r = self.r[i] - step * self.Ap[i]
                 self.r[i] = r

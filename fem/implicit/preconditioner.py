@@ -147,8 +147,11 @@ class Preconditioner:
         self.patches.restrict(r, on)
         self.patches.solve(on)
         rz = 0.0
+        vertices = self.model.vertex_count[None] * on
         ti.loop_config(serialize=self.serial_vertices)
-        for i in range(self.model.vertex_count[None] * on):
+        for i in range(self.model.capacity.vertices if ti.static(self.patches.sums.capacity_loops) else vertices):
+            if i >= vertices:
+                continue
             ri = r[i]
             zi = self.effects.filtered(i, self.jacobi(i, ri) + self.patches.prolong(i))
             z[i] = zi
