@@ -21,7 +21,7 @@ from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho
 from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
-from fem.implicit.potential import ROUNDOFF, IncrementalPotential
+from fem.implicit.potential import GRADIENT_ROUNDOFF, ROUNDOFF, IncrementalPotential
 from fem.implicit.preconditioner import Preconditioner
 from fem.implicit.rotations import Rotations
 from fem.implicit.safeguards import BEFORE, Safeguards
@@ -301,7 +301,7 @@ class ImplicitSolver:
             self.preconditioning.rebuild()
             self.linear.forget_weight()
             self.effects.set_dt(dt)
-            self.floor_np = self.model.body_floor(ROUNDOFF * epsilon(), h)
+            self.floor_np = self.model.body_floor(GRADIENT_ROUNDOFF * epsilon(), h)
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
             self.write_bodies()
