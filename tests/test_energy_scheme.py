@@ -15,7 +15,7 @@ import pytest
 
 import fem
 from app.bench.direct import DirectSolver
-from fem.implicit.potential import ROUNDOFF
+from fem.implicit.potential import GRADIENT_ROUNDOFF
 from fem.scene import Body, Effects, Material, Scene, SolverSettings
 from conftest import make_scene
 from scenes.hard_cases import cube
@@ -152,8 +152,8 @@ def test_a_step_converges_when_every_body_has(f32, integrator):
     when their sum is. With the sum, Newton stopped for want of anything either body could gain
     at this precision and reported the step unconverged (here 14 and 2 of 60 steps; fertility's
     two statues: 11 of 40 trapezoidal steps). The floor is the model's documented one
-    (`Model.body_floor`: ROUNDOFF epsilon h E L^2 per body; here about 130 times the gradient's
-    actual f32 round-off, 0.22 eps h E L^2 against numpy's float64 sum at the same iterate)."""
+    (`Model.body_floor`: GRADIENT_ROUNDOFF epsilon h E L^2 per body; here about 45 times the
+    gradient's actual f32 round-off, 0.22 eps h E L^2 against numpy's float64 sum at the same iterate)."""
     tolerance, dt = 1e-4, 0.02
     bars = [cube(cells=3, size=(1.2, 0.3, 0.3)) for _ in range(2)]
     scene = Scene("two bars", [Body(f"bar {k}", type(bar)(bar.vertices + [0.0, 0.0, 2.0 * k], bar.tets, bar.source),
@@ -167,6 +167,6 @@ def test_a_step_converges_when_every_body_has(f32, integrator):
         r = x[body] - x[body].mean(0)
         v[body] = np.cross([0.0, spin, 0.0], r) + 0.5 * spin * np.cross([1.0, 0.0, 0.0], r) * r[:, :1]
     sim.set_state(x, v)
-    floor = lambda h: sim.model.body_floor(ROUNDOFF * np.finfo(np.float32).eps, h)   # noqa: E731
+    floor = lambda h: sim.model.body_floor(GRADIENT_ROUNDOFF * np.finfo(np.float32).eps, h)   # noqa: E731
     checked, unconverged = converged_steps_checked(sim, dt, tolerance, bodies, steps=60, floor=floor)
     assert unconverged == 0 and checked >= 30, (checked, unconverged)
