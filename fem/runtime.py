@@ -166,9 +166,14 @@ def serial_loops(count, kind):
     return on_cpu() and count < PARALLEL_MIN[kind]
 
 
+def precision():
+    """"f32" or "f64": the float type the fields use (f32 before init)."""
+    return "f64" if _current.get("precision") == "f64" else "f32"
+
+
 def epsilon():
     """Machine epsilon of the float type the fields use (f32 before init)."""
-    return 2.0 ** -52 if _current.get("precision") == "f64" else 2.0 ** -23
+    return 2.0 ** -52 if precision() == "f64" else 2.0 ** -23
 
 
 def has_f64_trigonometry():

@@ -167,6 +167,6 @@ def test_a_step_converges_when_every_body_has(f32, integrator):
         r = x[body] - x[body].mean(0)
         v[body] = np.cross([0.0, spin, 0.0], r) + 0.5 * spin * np.cross([1.0, 0.0, 0.0], r) * r[:, :1]
     sim.set_state(x, v)
-    floor = lambda h: sim.model.body_floor(GRADIENT_ROUNDOFF * np.finfo(np.float32).eps, h)   # noqa: E731
+    floor = lambda h: sim.model.body_floor(GRADIENT_ROUNDOFF["f32"] * np.finfo(np.float32).eps, h)   # noqa: E731
     checked, unconverged = converged_steps_checked(sim, dt, tolerance, bodies, steps=60, floor=floor)
     assert unconverged == 0 and checked >= 30, (checked, unconverged)

@@ -153,10 +153,11 @@ def test_the_coursework_cylinder_at_rest_costs_no_solver_iterations(cggs):
     # In f32 the trapezoidal rule's a_n, taken from the forces at the first step's start, carries
     # their round-off into the second step's guess, which one CG iteration corrects (dropping
     # a_n's elastic part below the round-off floor cost a stiff f32 bar 0.8 % of its fall):
-    # at most two (two with the damped default rho_infinity exp(-dt / 0.5 s), which carries more
-    # of a_n into the guess than 0.9 did), and none from the third step on
+    # at most three (two with the damped default rho_infinity exp(-dt / 0.5 s), which carries more
+    # of a_n into the guess than 0.9 did; three since float32's gradient floor is 10 eps h E L^2, not
+    # 30: the solve takes out more of that round-off), and none from the third step on
     iters = [i["solver_iters"] for i in infos]
-    assert iters[0] == 0 and iters[1] <= 2 and iters[2:] == [0] * 3, iters
+    assert iters[0] == 0 and iters[1] <= 3 and iters[2:] == [0] * 3, iters
 
 
 def test_the_first_guess_extrapolates_the_last_steps_change(f64):

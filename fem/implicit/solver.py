@@ -26,7 +26,7 @@ from fem.implicit.preconditioner import Preconditioner
 from fem.implicit.rotations import Rotations
 from fem.implicit.safeguards import BEFORE, Safeguards
 from fem.implicit.sleep import Sleep
-from fem.runtime import epsilon, serial_loops
+from fem.runtime import epsilon, precision, serial_loops
 
 
 @dataclass
@@ -301,7 +301,7 @@ class ImplicitSolver:
             self.preconditioning.rebuild()
             self.linear.forget_weight()
             self.effects.set_dt(dt)
-            self.floor_np = self.model.body_floor(GRADIENT_ROUNDOFF * epsilon(), h)
+            self.floor_np = self.model.body_floor(GRADIENT_ROUNDOFF[precision()] * epsilon(), h)
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
             self.write_bodies()
