@@ -243,8 +243,8 @@ def build_parser(prog="main.py"):
     p.add_argument("--scenes", nargs="+", help="scenes to measure (default: all seed scenes and boxes)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
     p.add_argument("--docs", action="store_true",
-                   help="replace docs/benchmark.md, docs/benchmark.json and docs/accuracy_vs_time.png "
-                        "instead of writing into --out (the full benchmark only)")
+                   help="replace docs/benchmark.md, docs/benchmark.json and docs/accuracy_vs_time.png (with its "
+                        "numbers, .json) instead of writing into --out (the full benchmark only)")
     add_common(p)
 
     p = sub.add_parser("figures", help="redraw every figure in docs/, with the numbers behind each",

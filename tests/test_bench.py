@@ -52,6 +52,12 @@ def test_the_accuracy_plot_of_figures_is_the_benchs_own_from_the_same_results(be
     numbers = json.loads((tmp_path / "accuracy_vs_time.json").read_text())
     plotted = numbers["series"][scene["name"]]
     assert {legend: [list(p) for p in points] for (legend, _, _), points in bench_plot.series(scene).items()} == plotted
+    # `bench --docs` writes the same numbers beside its plot (docs/accuracy_vs_time.json), so that a
+    # new benchmark cannot leave the committed figure's numbers behind (tests/test_committed_figures.py).
+    (tmp_path / "docs").mkdir()
+    report.write(json.loads(results.read_text()), tmp_path / "docs", report.DOCS_FILES)
+    written = json.loads((tmp_path / "docs" / report.DOCS_FILES["numbers"]).read_text())
+    assert {k: v for k, v in written.items() if k != "source"} == {k: v for k, v in numbers.items() if k != "source"}
 
 
 def test_bench_writes_all_three_files(bench_output):
@@ -279,12 +285,13 @@ def test_an_f32_bench_takes_its_reference_in_f64_and_comes_back(bench_output, tm
 
 
 def test_docs_writes_the_committed_pages_from_the_full_plan_only(tmp_path, monkeypatch):
-    """`bench --docs` replaces docs/benchmark.md, benchmark.json and the plot, whatever --out says."""
+    """`bench --docs` replaces docs/benchmark.md, benchmark.json and the plot with its numbers, whatever --out says."""
     monkeypatch.setattr(bench, "DOCS", tmp_path)
     (tmp_path / "benchmark.md").write_text("the last run")
     args = main.build_parser().parse_args(["bench", "--docs"])
     assert bench.destination(args) == (tmp_path, report.DOCS_FILES)
-    assert report.DOCS_FILES == {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_vs_time.png"}
+    assert report.DOCS_FILES == {"json": "benchmark.json", "md": "benchmark.md", "plot": "accuracy_vs_time.png",
+                                 "numbers": "accuracy_vs_time.json"}
     for extra in (["--quick"], ["--scenes", "cube86"]):
         with pytest.raises(fem.FemError, match="--docs records the full benchmark"):
             bench.destination(main.build_parser().parse_args(["bench", "--docs", *extra]))

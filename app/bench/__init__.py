@@ -37,7 +37,7 @@ its kernels on first use), and the wall time per simulated second (ms per step /
 which compares runs at different dt.
 Outputs: results.md (tables), results.json (every number), accuracy_vs_time.png; with --docs,
 the pages in docs/ instead: benchmark.md, benchmark.json (from which `main.py figures` redraws
-the plot) and accuracy_vs_time.png.
+the plot) and accuracy_vs_time.png with its numbers in accuracy_vs_time.json.
 
 The parts, in the order a run goes through them:
 

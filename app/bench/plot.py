@@ -50,6 +50,12 @@ def series(scene):
     return out
 
 
+def numbers(results, source):
+    """What the plot draws, as `figures` writes it beside the PNG (accuracy_vs_time.json)."""
+    series_of = {s["name"]: {legend: points for (legend, _, _), points in series(s).items()} for s in results["scenes"]}
+    return {"source": str(source), "x": "wall s per simulated s", "y": "position error", "series": series_of}
+
+
 def plot(results, file):
     import matplotlib
     matplotlib.use("Agg")

@@ -311,13 +311,10 @@ def epcot_still(maker, color):
 def accuracy_plot(maker):
     try:
         results = json.loads(maker.bench.read_text())
-        plotted = {s["name"]: {legend: points for (legend, _, _), points in bench_plot.series(s).items()}
-                   for s in results["scenes"]}
+        plotted = bench_plot.numbers(results, maker.bench)
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise FemError(f"{maker.bench}: not the results of `main.py bench` ({error})") from None
-    return Drawn(lambda file: bench_plot.plot(results, file),
-                 {"source": str(maker.bench), "x": "wall s per simulated s", "y": "position error",
-                  "series": plotted})
+    return Drawn(lambda file: bench_plot.plot(results, file), plotted)
 
 
 def hard_case_energy(maker):
