@@ -9,6 +9,7 @@ from someone else's surface is never committed.
 import contextlib
 import hashlib
 import importlib.util
+import math
 import os
 import subprocess
 import sys
@@ -160,12 +161,15 @@ def load_surface(path):
     except ImportError:
         raise FemError(f"{path}: cannot read a surface (not a valid {Path(path).suffix} file)") from None
     except Exception as error:
-        raise FemError(f"{path}: cannot read a surface ({type(error).__name__}: "
-                       f"{excerpt(error, 120)})") from None
+        why = obj_line_problem(path) or f"{type(error).__name__}: {excerpt(error, 120)}"
+        raise FemError(f"{path}: cannot read a surface ({why})") from None
     faces = np.asarray(getattr(surface, "faces", np.zeros((0, 3))))
     if faces.ndim != 2 or len(faces) == 0:
         raise FemError(f"{path}: no triangles in the file")
     vertices = np.asarray(surface.vertices, dtype=np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:   # trimesh reads an .obj of 'v x y' lines as 2-D
+        why = obj_line_problem(path) or f"its vertices have {vertices.shape[-1]} coordinates, not 3"
+        raise FemError(f"{path}: cannot read a surface ({why})")
     if not np.isfinite(vertices).all():
         raise FemError(f"{path}: the surface has non-finite coordinates")
     faces = faces.astype(np.int32)
@@ -174,6 +178,29 @@ def load_surface(path):
         raise FemError(f"{path}: the surface is not closed: {open_edges} edges have a triangle on one side "
                        "only (a hole); only a closed surface has an inside to fill with tets")
     return vertices, faces
+
+
+def obj_line_problem(path):
+    """For a Wavefront .obj that trimesh could not read: the first vertex line without three
+    numbers ("line 4: a vertex needs x y z, got 'v 1 2'"), or None. (trimesh's own error for it
+    is numpy's: "operands could not be broadcast together".)"""
+    if Path(path).suffix.lower() != ".obj":
+        return None
+    try:
+        lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return None
+    for number, line in enumerate(lines, start=1):
+        tokens = line.split("#")[0].split()
+        if tokens[:1] != ["v"]:
+            continue
+        try:
+            ok = len(tokens) >= 4 and all(math.isfinite(float(t)) for t in tokens[1:4])
+        except ValueError:
+            ok = False
+        if not ok:
+            return f"line {number}: a vertex needs x y z, got {excerpt(line.strip(), 60)}"
+    return None
 
 
 def count_open_edges(faces):

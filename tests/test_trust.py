@@ -102,6 +102,21 @@ def test_a_surface_that_is_not_one_is_one_error_line_and_caches_nothing(here, ca
     assert not cache.exists() or not list(cache.iterdir())
 
 
+def test_an_obj_vertex_without_three_coordinates_is_named_by_its_line(tmp_path):
+    """trimesh's own error for it is numpy's ("operands could not be broadcast together")."""
+    (tmp_path / "short.obj").write_text("# a tetrahedron\nv 0 0 0\nv 1 0\nv 0 1 0\nv 0 0 1\n"
+                                        "f 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n")
+    (tmp_path / "word.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 one 0\nv 0 0 1\nf 1 2 3\n")
+    for name, line in (("short.obj", "line 3: a vertex needs x y z, got 'v 1 0'"),
+                       ("word.obj", "line 3: a vertex needs x y z, got 'v 0 one 0'")):
+        try:
+            load_surface(tmp_path / name)
+        except FemError as error:
+            assert line in str(error), error
+        else:    # a reader that pads or skips the line must still not hand back a surface from it
+            raise AssertionError(f"{name} was read")
+
+
 @pytest.mark.parametrize("argv", [["export", "cube86", "--steps", "5"], ["simulate", "cube86", "--stat", "x"],
                                   ["simulate", "cube86", "--over"]])
 def test_abbreviated_options_are_refused(here, argv):
