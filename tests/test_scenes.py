@@ -1,6 +1,7 @@
 """Built-in and coursework scenes: they load, run in both methods, and show their point."""
 
 import json
+import re
 import subprocess
 import sys
 from dataclasses import replace
@@ -11,6 +12,7 @@ from conftest import ROOT
 
 import fem
 import scenes
+from app.commands import simulate
 
 BUILTIN = ["bunny", "cube", "cube86", "epcot", "fertility", "torsion", "two_boxes"]
 COURSEWORK = ["bunny", "single-bunny", "cube86", "cylinder", "epcot", "fertility", "student-cube", "student-torsion"]
@@ -34,6 +36,21 @@ def test_builtin_scene_runs_half_a_second_in_both_methods(f32, name):
         x = sim.positions()
         assert np.isfinite(x).all()
         assert sim.stats()["corotational"] == [method == "corotational"] * len(sim.model.bodies)
+    assert_the_summary_adds_up(sim)
+
+
+def assert_the_summary_adds_up(sim):
+    """The summary's energy line prints every term its total holds: they add up to it."""
+    rows = simulate.Tally()
+    rows.append(sim.last)
+    line = next(line for line in simulate.summary(sim, rows).splitlines() if line.startswith("energy: "))
+    terms = dict((name, float(value)) for name, value in re.findall(r"(\w+) ([-\d.e+]+) J", line))
+    total = terms.pop("total")
+    assert {"kinetic", "elastic"} <= set(terms), line
+    if sim.scene.effects.gravity is not None:
+        assert "gravity" in terms, line
+    # each term is printed to 4 significant digits
+    assert sum(terms.values()) == pytest.approx(total, abs=1e-3 * sum(map(abs, terms.values())) + 1e-9), line
 
 
 @pytest.mark.parametrize("name", COURSEWORK)

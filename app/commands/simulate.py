@@ -151,7 +151,7 @@ def summary(sim, rows):
     ms = rows["wall_ms"][1:] or rows["wall_ms"] or [0.0]
     iters = rows["solver_iters"] or [0]
     lines = [f"scene {sim.scene.name}: {m.n_tets} tets, {m.n_vertices} vertices, "
-             f"{len(m.bodies)} bodies, dt {sim.settings.dt:g} s, {integrator_note(sim)}, solver {sim.settings.method} "
+             f"{counted(len(m.bodies), 'body', 'bodies')}, dt {sim.settings.dt:g} s, {integrator_note(sim)}, solver {sim.settings.method} "
              f"(tol {sim.settings.tolerance:g}{preconditioner_note(sim)}), {fem.runtime.current().get('arch')} "
              f"{fem.runtime.current().get('precision')}"]
     for i, b in enumerate(m.bodies):
@@ -161,17 +161,36 @@ def summary(sim, rows):
                      f"{sim.model.bodies[i].method}, volume ratio now {final['volume_ratio'][i]:.4f}")
     not_converged = len(rows) - sum(rows["converged"])
     rejected = len(rows) - sum(rows["finite"])
-    lines.append(f"{len(rows)} steps to t = {sim.t:.3f} s: {statistics.median(ms):.2f} ms/step (median), "
+    lines.append(f"{counted(len(rows), 'step')} to t = {sim.t:.3f} s: {statistics.median(ms):.2f} ms/step (median), "
                  f"{statistics.mean(rows['newton_iters'] or [0]):.1f} Newton and "
                  f"{statistics.mean(iters):.1f} solver iterations/step ({sim.step_kind} step), "
-                 f"{not_converged} steps not converged, {rejected} steps rejected")
-    lines.append(f"energy: kinetic {final['kinetic_energy']:.4g} J, elastic {final['elastic_energy']:.4g} J, "
-                 f"total {final['total_energy']:.4g} J; "
-                 f"inverted tets {final['inverted_tets']}")
+                 f"{counted(not_converged, 'step')} not converged, {counted(rejected, 'step')} rejected")
+    lines.append(f"energy: {energy_terms(sim, final)}; inverted tets {final['inverted_tets']}")
     if sim.solver.switches.contact:
         record, smallest = sim.contact_record, sim.contact_record["smallest_distance"]
         lines.append(f"contact (distance {sim.scene.effects.contact.distance:g} m): at most {record['most_pairs']} "
                      f"pairs touching, smallest distance "
                      f"{'none closer than the distance' if smallest is None else f'{smallest:.3g} m'}, "
-                     f"{record['interpenetrating_steps']} steps ended with interpenetrating pairs")
+                     f"{counted(record['interpenetrating_steps'], 'step')} ended with interpenetrating pairs")
     return "\n".join(lines)
+
+
+ENERGY_TERMS = (("kinetic", "kinetic_energy"), ("elastic", "elastic_energy"),
+                ("gravity", "gravity_energy"), ("contact", "contact_energy"))
+
+
+def energy_terms(sim, final):
+    """'kinetic 215 J, elastic 54.56 J, gravity 3575 J, total 3845 J': every term the total
+    holds (gravity's potential with gravity on, contact's barrier with a ground or contact),
+    so that the printed terms add up to the total."""
+    switches = sim.solver.switches
+    shown = {"kinetic_energy": True, "elastic_energy": True, "gravity_energy": switches.gravity,
+             "contact_energy": switches.ground or switches.contact}
+    terms = [f"{name} {final[key]:.4g} J" for name, key in ENERGY_TERMS
+             if shown[key] or final[key] != 0.0]
+    return ", ".join(terms + [f"total {final['total_energy']:.4g} J"])
+
+
+def counted(count, noun, plural=None):
+    """'1 step', '2 steps', '1 body', '3 bodies'."""
+    return f"{count} {noun if count == 1 else plural or noun + 's'}"
