@@ -7,8 +7,8 @@ adds them up per kernel:
     kernel | launches | tasks | tasks/step | ms | ms/step | share | bytes | GB/s
 
 launches: calls of the kernel from Python; tasks: the device launches they made; share:
-the kernel's time over the steps' (median) wall time (the rest is Python, launches and
-waiting); bytes: DRAM traffic, which only CUDA's CUPTI counters can tell (`count_bytes`,
+the kernel's time over the profiled steps' wall time, all of them added up (the rest is
+Python, launches and waiting; shares therefore add up to at most 100 %); bytes: DRAM traffic, which only CUDA's CUPTI counters can tell (`count_bytes`,
 with a Taichi built with CUPTI); elsewhere "n/a".
 
 The profiler waits for every task to end before the next starts, so a profiled step is
@@ -73,7 +73,7 @@ def kernels():
 
 def rows(table, steps, wall_ms):
     """The table's rows sorted by time, each with its per-step and share figures; wall_ms: the
-    steps' wall time (steps x the median step)."""
+    profiled steps' wall time, added up (the kernels ran within it)."""
     out = []
     for name, row in sorted(table.items(), key=lambda item: -item[1]["ms"]):
         out.append({"kernel": name, **row, "tasks_per_step": row["tasks"] / steps,
@@ -100,8 +100,12 @@ def markdown(rows, steps, wall_ms, top=None):
                  f"| {sum(r['tasks'] for r in rows) / steps:.1f} | {ms:.1f} | {ms / steps:.3f} "
                  f"| {100 * ms / wall_ms if wall_ms > 0 else 0:.1f} % | {_bytes(total_bytes)} "
                  f"| {_figure(total_bytes / ms / 1e6 if total_bytes and ms > 0 else None, '.0f')} |")
-    lines.append(f"| outside kernels (Python, launching, waiting) | | | | {wall_ms - ms:.1f} "
-                 f"| {(wall_ms - ms) / steps:.3f} | {100 * (wall_ms - ms) / wall_ms if wall_ms > 0 else 0:.1f} % | | |")
+    if ms <= wall_ms:
+        lines.append(f"| outside kernels (Python, launching, waiting) | | | | {wall_ms - ms:.1f} "
+                     f"| {(wall_ms - ms) / steps:.3f} | {100 * (wall_ms - ms) / wall_ms:.1f} % | | |")
+    else:       # the device's timers and the host's clock disagree: no share can be given
+        lines.append(f"| outside kernels: n/a (the kernels' timers add up to {ms:.1f} ms, more than the "
+                     f"steps' {wall_ms:.1f} ms of wall time) | | | | | | | | |")
     return "\n".join(lines)
 
 
@@ -114,7 +118,7 @@ def _figure(value, spec):
 
 
 def profile_steps(sim, kind, warmup, steps):
-    """{"rows", "ms_median", "steps", "tets", "cg_iterations"}: the kernel table of `steps` steps
+    """{"rows", "ms_median", "wall_ms", "steps", "tets", "cg_iterations"}: the kernel table of `steps` steps
     of the STEP_KINDS `kind`, from the scene's start after `warmup` steps, and the PCG iterations
     they took (Taichi running with its profiler on)."""
     sim.reset()
@@ -127,8 +131,8 @@ def profile_steps(sim, kind, warmup, steps):
         sim.step()
         ms.append(sim.last["wall_ms"])
         iterations += sim.last["solver_iters"]
-    median = statistics.median(ms)
-    return {"rows": rows(kernels(), steps, steps * median), "ms_median": median, "steps": steps,
+    return {"rows": rows(kernels(), steps, sum(ms)), "ms_median": statistics.median(ms), "wall_ms": sum(ms),
+            "steps": steps,
             "tets": sim.model.n_tets, "cg_iterations": iterations}
 
 

@@ -117,7 +117,7 @@ def markdown(results):
                 if m.get("bytes_counted") else ""
             lines += ["", f"## Kernel profile, {p['tets']:,} tets, {kind} step ({p['steps']} steps, "
                           f"{p['ms_median']:.2f} ms/step median with the profiler on){replays}", "",
-                      profile.markdown(p["rows"], p["steps"], p["steps"] * p["ms_median"], top=25)]
+                      profile.markdown(p["rows"], p["steps"], p["wall_ms"], top=25)]
             found = bandwidth(p["rows"], m["device"])
             lines += ["", "Launches: " + profile.launches_note(p) + "."]
             lines += ["", "Achieved bandwidth over the step's kernels: " + (

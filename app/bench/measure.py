@@ -294,7 +294,7 @@ def contact_cost(ref, plan, args, info):
     plan.contact_steps[0] steps (the bodies land), with contact and with it off (the bodies pass
     through each other). Each of "on" and "off": ms/step median, Newton and CG iterations a step,
     steps not converged; "on" also the pairs touching a step and contact's own kernels' share of
-    the step (their time over the median step's, `contact_kernels`)."""
+    the step (their time over the steps' summed wall time, `contact_kernels`)."""
     if not ti.lang.impl.current_cfg().kernel_profiler:
         fem.init(args.arch, args.precision, debug=args.debug, profile=True)
     warmup, steps = plan.contact_steps
@@ -317,6 +317,7 @@ def contact_cost(ref, plan, args, info):
         if effect is not None:
             table = profile.kernels()
             out[key]["pairs"] = float(np.mean([row["contact_pairs"] for row in rows]))
-            out[key]["kernels"] = {name: table[name]["ms"] / (steps * ms) for name in own if name in table}
+            wall = sum(row["wall_ms"] for row in rows)
+            out[key]["kernels"] = {name: table[name]["ms"] / wall for name in own if name in table}
             out[key]["share"] = sum(out[key]["kernels"].values())
     return out

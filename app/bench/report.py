@@ -302,15 +302,16 @@ def kernel_profile(results):
     lines = ["## Where a step's time goes", "",
              f"{p['scene']} ({p['tets']} tets), Taichi's kernel profiler (`simulate --profile`, app/profile.py), "
              f"{p['machine']}: {p['steps']} steps of each kind after {p['warmup']} from the start. *tasks*: the "
-             "device launches (a task per top-level loop of a kernel); *share*: of the median step, whose time "
-             "outside kernels is Python, launching and waiting. Bytes need CUDA's CUPTI counters: n/a on a CPU. "
+             "device launches (a task per top-level loop of a kernel); *share*: of the profiled steps' wall time, "
+             "added up (so the shares add up to at most 100 %), whose time outside kernels is Python, launching "
+             "and waiting. Bytes need CUDA's CUPTI counters: n/a on a CPU. "
              "On a GPU, `python -m tools.gpu_measure OUT.md --arch gpu` times box bars of 49k to 2M tets and "
              "prints these tables for 49k and 973k: docs/gpu.md has them for an NVIDIA H100 80GB HBM3 (and an "
              "H200's bytes), with the bytes each kernel moves as Nsight Compute counts them (`tools/gpu_bytes.py`).",
              ""]
     for kind, table in p["kinds"].items():
         lines += [f"**{kind} step**, {table['ms_median']:.3g} ms/step median with the profiler on:", "",
-                  profile.markdown(table["rows"], table["steps"], table["steps"] * table["ms_median"], top=15), "",
+                  profile.markdown(table["rows"], table["steps"], table["wall_ms"], top=15), "",
                   f"Launches: {profile.launches_note(table)}.", ""]
     return lines
 

@@ -69,14 +69,18 @@ def run(args) -> int:
 
 
 def profile_table(rows):
-    """The kernel profile of the steps after the first (of all of them when there is one), its
-    shares of the median step's time: later steps compile what the first did not need (a
-    line search's trial), and a median leaves those out."""
-    wall = rows["wall_ms"][1:] or rows["wall_ms"]
-    steps, median = max(1, len(wall)), statistics.median(wall or [0.0])
-    table = profile.rows(profile.kernels(), steps, steps * median)
-    return (f"kernel profile of {steps} steps ({median:.2f} ms/step median with the profiler on):\n"
-            + profile.markdown(table, steps, steps * median))
+    """The kernel profile of the steps after the first (which compiles the kernels), with each
+    kernel's share of those steps' wall time; a line saying why there is none with fewer than
+    two steps."""
+    wall = rows["wall_ms"][1:]
+    if not wall:
+        return (f"kernel profile: none, as the run took {counted(len(rows), 'step')}: the first step "
+                f"compiles the kernels and is left out, so --profile needs --steps 2 or more")
+    steps, total = len(wall), sum(wall)
+    table = profile.rows(profile.kernels(), steps, total)
+    return (f"kernel profile of the {counted(steps, 'step')} after the first ({statistics.median(wall):.2f} ms/step "
+            f"median, {total:.1f} ms in all, with the profiler on):\n"
+            + profile.markdown(table, steps, total))
 
 
 class Tally:
