@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError
+from fem.errors import FemError, not_a_file
 from fem.limits import MAX_INTEGER
 from fem.mesh import MESHIO_READ_EXTENSIONS, TetMesh, read_tet_mesh
 
@@ -171,6 +171,9 @@ def _existing_path(value, base_dir, key):
     path = Path(value)
     if not path.is_absolute():
         path = Path(base_dir) / path
-    if not path.is_file():
+    reason = not_a_file(path)
+    if reason == "no such file":
         raise FemError(f"{key} {value!r} not found (looked for {path})")
+    if reason is not None:
+        raise FemError(f"{key} {value!r}: {path} is {reason}")
     return path

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from fem import limits
-from fem.errors import FemError, excerpt
+from fem.errors import FemError, excerpt, require_file
 from fem.mesh import read_tet_mesh
 from fem.scene import (Body, Effects, Initial, Material, Scene, Selection, SolverSettings, check_placed,
                        place_mesh)
@@ -23,8 +23,7 @@ from fem.scene import (Body, Effects, Initial, Material, Scene, Selection, Solve
 
 def read_coursework_scene(path):
     path = Path(path)
-    if not path.is_file():
-        raise FemError(f"{path}: no such scene file")
+    require_file(path, "scene file")
     limits.check_file_size(path, limits.MAX_SCENE_FILE_BYTES)
     try:
         text = path.read_text()

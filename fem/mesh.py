@@ -11,13 +11,14 @@ through meshio.
 """
 
 import os
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fem import limits
-from fem.errors import FemError, excerpt
+from fem.errors import FemError, excerpt, require_file
 
 
 @dataclass
@@ -209,8 +210,7 @@ def read_tet_mesh(path):
     if suffix != ".mesh" and suffix not in MESHIO_READ_EXTENSIONS:
         known = ", ".join([".mesh", *sorted(MESHIO_READ_EXTENSIONS)])
         raise FemError(f"{path}: unknown tet mesh extension {path.suffix!r} (known: {known})")
-    if not path.is_file():
-        raise FemError(f"{path}: no such file")
+    require_file(path, "mesh file")
     from fem.limits import check_file_size
     check_file_size(path)
     if suffix == ".mesh":
@@ -259,11 +259,31 @@ def _read_with_meshio(path):
     except Exception as error:
         detail = excerpt(str(error), 120) if str(error) else f"'not a valid {path.suffix} file'"
         raise FemError(f"{path}: cannot read ({type(error).__name__}: {detail})") from None
+    other_solids = Counter(block.type for block in data.cells for _ in range(len(block.data))
+                           if block.type != "tetra" and block.type.startswith(SOLID_CELLS))
+    if other_solids:
+        raise FemError(f"{path}: {cell_counts(other_solids)} besides tetrahedra: only 4-node tetrahedra are "
+                       f"simulated, and dropping the others would lose their volume; split them into tets "
+                       f"(e.g. Gmsh's Mesh > Subdivide or -format with linear tets) and save again")
     blocks = [block.data for block in data.cells if block.type == "tetra"]
     if not blocks:
         raise FemError(f"{path}: no tetrahedra in the file "
                        f"(cell types: {', '.join(b.type for b in data.cells) or 'none'})")
     return prepare_mesh(data.points, np.concatenate(blocks), str(path))
+
+
+# meshio's names of 3-D cells (their higher-order kinds start the same): a file with one of these
+# besides plain "tetra" is refused rather than simulated without it. Faces, edges and points
+# (a Gmsh file's boundary and physical groups) are the tets' own boundary and are not needed.
+SOLID_CELLS = ("tetra", "hexahedron", "wedge", "pyramid", "polyhedron")
+# The MEDIT sections that hold 3-D cells other than 4-node tets.
+MEDIT_OTHER_SOLIDS = {"hexahedra": "hexahedron", "prisms": "wedge", "pyramids": "pyramid",
+                      "tetrahedrap2": "tetra10", "hexahedraq2": "hexahedron27"}
+
+
+def cell_counts(counts):
+    """'1 hexahedron cell, 2 wedge cells' from {cell type: count}."""
+    return ", ".join(f"{n} {kind} cell{'s' if n != 1 else ''}" for kind, n in sorted(counts.items()))
 
 
 def _read_medit(path):
@@ -359,6 +379,15 @@ def _read_medit(path):
             else:
                 rows, tet_lines, at = read_rows(at, "tet", 4, _index)
                 tets = np.array(rows, dtype=np.int64).reshape(-1, 4)
+        elif keyword in MEDIT_OTHER_SOLIDS:
+            count, _ = read_count(at)
+            if count:
+                raise FemError(f"{name}:{number}: {tokens[0]}: {cell_counts({MEDIT_OTHER_SOLIDS[keyword]: count})} "
+                               f"besides tetrahedra: only 4-node tetrahedra are simulated, and dropping the "
+                               f"others would lose their volume; split them into tets and save again")
+            at += 1
+            while at < len(lines) and not _is_keyword(lines[at][1][0]):
+                at += 1
         else:
             # MeshVersionFormatted, Triangles, Edges, Corners, ...: not needed.
             at += 1

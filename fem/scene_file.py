@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from fem import limits
-from fem.errors import FemError
+from fem.errors import FemError, require_file
 from fem.scene import (METHODS, Body, ContactEffect, Effects, Impulse, Initial, Material, Scene, Selection,
                        SolverSettings, axis_angle_quaternion, check_placed, place_mesh, select_vertices)
 
@@ -97,8 +97,7 @@ def check_type(value, kind, where):
 def read_toml_data(path):
     """The raw data (dict) of a TOML file."""
     path = Path(path)
-    if not path.is_file():
-        raise FemError(f"{path}: no such scene file")
+    require_file(path, "scene file")
     limits.check_file_size(path, limits.MAX_SCENE_FILE_BYTES)
     try:
         with open(path, "rb") as f:

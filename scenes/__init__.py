@@ -6,6 +6,7 @@ The engine (`fem`) reads the files; this package knows where they are.
 """
 
 import copy
+import os
 import difflib
 import tomllib
 from pathlib import Path
@@ -13,7 +14,7 @@ from pathlib import Path
 from assets import MESH_FILE_SUFFIXES, build_mesh, mesh_file_scene
 from fem.coursework import read_coursework_scene
 from fem import limits
-from fem.errors import FemError, excerpt
+from fem.errors import FemError, excerpt, not_a_file, require_file
 from fem.scene import ContactEffect
 from fem.scene_file import read_toml_data, read_toml_scene
 
@@ -51,15 +52,16 @@ def load_scene(ref, overrides=None, contact=False):
             scene.effects.contact = ContactEffect()
         return scene
     if suffix in MESH_FILE_SUFFIXES:
-        if not path.is_file():
-            raise FemError(f"{path}: no such mesh file")
+        require_file(path, "mesh file")
         return read_with_overrides(path, with_contact(mesh_file_scene(path), contact), overrides or [])
     if suffix != ".toml":
         builtin = SCENES_DIR / f"{ref}.toml"
         if not builtin.exists():
+            known = ", ".join([".toml", "-scene.txt", *MESH_FILE_SUFFIXES])
             if path.is_file():
-                known = ", ".join([".toml", "-scene.txt", *MESH_FILE_SUFFIXES])
                 raise FemError(f"{path}: not a scene or mesh file (known: {known})")
+            if os.path.lexists(path):
+                raise FemError(f"{path}: {not_a_file(path)}; a scene is a built-in name or a file ({known})")
             names = list(builtin_scenes())
             hint = difflib.get_close_matches(str(ref), names, n=1)
             also = f" (did you mean {hint[0]!r}?)" if hint else f"; built-in scenes: {', '.join(names)}"

@@ -29,7 +29,7 @@ def simulate(tmp_path, change):
 def test_an_unusable_home_or_cache_folder_still_runs(tmp_path, change):
     run = simulate(tmp_path, change)
     assert run.returncode == 0, run.stderr
-    assert "1 steps to t =" in run.stdout
+    assert "1 step to t =" in run.stdout
     if change != {"HOME": None}:
         assert "cannot be written; using" in run.stderr
 

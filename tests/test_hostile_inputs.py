@@ -129,7 +129,7 @@ def test_a_truncated_cache_entry_of_a_generated_mesh_is_rebuilt(here):
     entry.write_bytes(entry.read_bytes()[:-40])
     code, out, err = run("simulate", "epcot", "--steps", "1")
     assert code == 0, err
-    assert "1 steps to t =" in out
+    assert "1 step to t =" in out
     assert entry.stat().st_size > 1000                 # rebuilt in place
 
 
@@ -141,7 +141,7 @@ def test_a_cache_entry_that_is_a_folder_is_built_around_and_leaves_nothing(here)
     entry.mkdir()
     code, out, err = run("simulate", "epcot", "--steps", "1")
     assert code == 0, err
-    assert "warning: could not cache the tet mesh" in err and "1 steps to t =" in out
+    assert "warning: could not cache the tet mesh" in err and "1 step to t =" in out
     assert [path.name for path in (here / "cache").iterdir()] == [entry.name]
 
 
@@ -307,7 +307,7 @@ def test_an_empty_home_still_runs(here):
     """HOME unset aborted `import taichi` (SIGABRT); an empty HOME is the same to Taichi."""
     run_ = main_py(here, "simulate", "S.toml", "--steps", "1", env={"HOME": ""})
     assert run_.returncode == 0, run_.stderr
-    assert "1 steps to t =" in run_.stdout
+    assert "1 step to t =" in run_.stdout
 
 
 def test_a_non_ascii_scene_name_on_an_ascii_terminal_is_one_error_line(here):
