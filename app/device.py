@@ -14,6 +14,7 @@ import sys
 
 import fem
 from fem.errors import FemError
+from fem.runtime import NoGpuError
 
 # VkPhysicalDeviceType: VK_PHYSICAL_DEVICE_TYPE_INTEGRATED_GPU = 1, DISCRETE_GPU = 2, CPU = 4.
 VULKAN_CPU_TYPE = 4
@@ -28,9 +29,7 @@ def start(args) -> dict:
     try:
         backend = fem.init(args.arch, args.precision, debug=args.debug,
                            profile=getattr(args, "profile", False))
-    except FemError:
-        if args.arch != "gpu":
-            raise
+    except NoGpuError:
         raise FemError("--arch gpu: no GPU backend found on this machine (use --arch cpu or auto)") from None
     found = describe(backend)
     if args.arch != "cpu":

@@ -33,6 +33,9 @@ GPU_GRID_BLOCKS = 2048
 # halving the grid took box50k's one-solve step from 4.9 to 3.1 ms on an H200). 0 until measured
 # on a GPU (`tools/gpu_tune.py ... GPU_CAPACITY_LOOPS=1`); a CPU ignores it.
 GPU_CAPACITY_LOOPS = 0
+# Where Taichi's kernel profiler works: on Vulkan (Mesa's llvmpipe at least) writing a field
+# with it on is a segmentation fault.
+PROFILED_BACKENDS = ("x64", "arm64", "cuda")
 _current = {}
 
 
@@ -75,10 +78,20 @@ def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False)
                 log_level=ti.ERROR, kernel_profiler=profile, saturating_grid_dim=GPU_GRID_BLOCKS)
     backend = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and backend in ("x64", "arm64"):
-        raise FemError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
+        raise NoGpuError("arch 'gpu': no GPU backend found on this machine ('cpu' or 'auto' run without one)")
+    if profile and backend not in PROFILED_BACKENDS:
+        ti.reset()
+        _current.clear()
+        raise FemError(f"the kernel profiler (--profile) runs on the CPU and CUDA only, not on {backend}: "
+                       f"Taichi 1.7's profiler there ends the process at the first field written; "
+                       f"profile with --arch cpu, or on an NVIDIA GPU")
     _current.update(arch=backend, precision=precision, settings=settings, profile=profile, grid=GPU_GRID_BLOCKS,
                     runtime=ti.lang.impl.get_runtime())
     return backend
+
+
+class NoGpuError(FemError):
+    """arch "gpu" asked for on a machine where Taichi finds no GPU backend."""
 
 
 def ignore_taichi_arch_variable(arch):

@@ -67,3 +67,20 @@ def test_without_profile_no_table():
     code, out, err = run("simulate", "cube86", "--steps", "2")
     assert code == 0, err
     assert "kernel profile" not in out
+
+
+def test_profile_on_a_gpu_backend_without_a_working_profiler_is_an_error_not_a_crash():
+    """Taichi 1.7's profiler on Vulkan (Mesa's software llvmpipe here, with its driver installed)
+    ended the process with a segmentation fault at the first field written."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    run_ = subprocess.run([sys.executable, str(root / "main.py"), "simulate", "cube86", "--steps", "2",
+                           "--profile", "--arch", "gpu"], capture_output=True, text=True, timeout=600)
+    assert run_.returncode in (0, 2), run_.stderr                   # 0: CUDA, which profiles
+    assert "Traceback" not in run_.stderr
+    if run_.returncode == 2:
+        errors = [line for line in run_.stderr.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and ("runs on the CPU and CUDA only" in errors[0] or "no GPU backend" in errors[0])
