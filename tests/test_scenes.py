@@ -96,6 +96,8 @@ def test_simulate_writes_one_stats_row_per_step(tmp_path):
                 "volume_ratio", "inverted_tets", "corotational", "finite"):
         assert key in rows[-1]
     assert rows[-1]["step"] == 50 and rows[-1]["t"] == pytest.approx(1.0)
+    # the times as written: 0.02, 0.04, ..., 1.0 (not 0.12000000000000001)
+    assert [json.dumps(row["t"]) for row in rows[:10]] == [json.dumps(k / 50) for k in range(1, 11)]
     assert len(rows[0]["volume_ratio"]) == 2 and all(r["finite"] for r in rows)
     assert "ms/step" in run.stdout
     again = subprocess.run([sys.executable, "main.py", "simulate", "cube86", "--steps", "5", "--stats", str(out)],
