@@ -138,3 +138,14 @@ def test_a_quaternion_of_any_finite_size_rotates_the_same(scale):
     quarter_turn_about_x = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
     np.testing.assert_allclose(quaternion_matrix(np.array([1.0, 1.0, 0.0, 0.0]) * scale), quarter_turn_about_x,
                                atol=1e-12)
+
+
+def test_the_readme_lists_every_built_in_scene_and_every_stats_column(f32):
+    readme = (ROOT / "README.md").read_text()
+    table = readme.split("### Built-in scenes", 1)[1].split("\n\n", 1)[0]
+    assert sorted(re.findall(r"^\| `(\w+)` \|", table, flags=re.M)) == BUILTIN
+    sim = fem.Simulation(scenes.load_scene("two_boxes"))
+    sim.step()
+    row = sim.stats()
+    listed = readme.split("`--stats` writes one JSON object per step", 1)[1].split("`--stats -`", 1)[0]
+    assert [key for key in row if not re.search(rf"\b{key}\b", listed)] == []
