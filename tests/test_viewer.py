@@ -1,10 +1,12 @@
 """The interactive window: picking and pushing (pure numpy), camera moves, and the
 real window under a virtual X display, driven with xdotool."""
 
+import contextlib
 import ctypes.util
 import glob
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -127,6 +129,29 @@ def test_compare_labels_sit_over_their_copies():
     assert x1 < 0.5 < x2
 
 
+def test_the_panel_shows_no_figure_before_it_is_measured():
+    from app.window.panel import numbers
+    before = {"step": 0, "t": 0.0, "solver": "pcg", "kinetic_energy": 0.0}      # Simulation.stats() at the start
+    lines = numbers(before, fps=None, steps_per_frame=0, render_ms=None, paused=False)
+    assert lines == ["t = 0.00 s, step 0", "fps: measuring", "pcg: no step yet"]
+    stepped = dict(before, step=1, t=0.02, preconditioner="jacobi", residual=6.5e-4, solver_iters=35,
+                   converged=False, rotation_ms=6.9, solve_ms=125.6)
+    lines = numbers(stepped, fps=12.34, steps_per_frame=2, render_ms=45.0, paused=True)
+    assert lines == ["t = 0.02 s, step 1   PAUSED", "12.3 fps, 2 step(s)/frame", "ms/frame rendering: 45.0",
+                     "ms/step: rotations 6.9, solve 125.6", "pcg (jacobi): 35 iterations",
+                     "residual 6.5e-04  NOT CONVERGED"]
+
+
+def test_the_panel_holds_its_longest_lines_at_any_window_width():
+    from app.window.panel import CHAR_WIDTH, PANEL_MARGIN, panel_chars, panel_width
+    for width in (640, 1280, 1920, 3840):
+        pixels = panel_width(width) * width
+        assert pixels <= width / 2
+        assert panel_chars(width) * CHAR_WIDTH + PANEL_MARGIN <= pixels
+    # A slider takes 65 % of the panel; its label ("strength [m/s]") and the margins the rest.
+    assert 0.35 * panel_width(1280) * 1280 >= 14 * CHAR_WIDTH + 34
+
+
 def test_a_recording_plays_at_the_speed_it_was_seen(monkeypatch):
     from types import SimpleNamespace
 
@@ -162,14 +187,15 @@ def missing_tools():
     return None
 
 
-@pytest.fixture
-def display():
-    """A fresh virtual X display (Xvfb picks a free number); yields its DISPLAY value."""
+@contextlib.contextmanager
+def virtual_display(width, height):
+    """A fresh virtual X screen of width x height pixels (Xvfb picks a free number); yields its
+    DISPLAY value."""
     reason = missing_tools()
     if reason:
         pytest.skip(reason)
     read, write = os.pipe()
-    server = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", f"{WIDTH}x{HEIGHT}x24",
+    server = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", f"{width}x{height}x24",
                                "-nolisten", "tcp"], pass_fds=[write],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     os.close(write)
@@ -178,9 +204,17 @@ def display():
     if not number:
         server.kill()
         pytest.skip("Xvfb did not start")
-    yield f":{number}"
-    server.terminate()
-    server.wait(10)
+    try:
+        yield f":{number}"
+    finally:
+        server.terminate()
+        server.wait(10)
+
+
+@pytest.fixture
+def display():
+    with virtual_display(WIDTH, HEIGHT) as name:
+        yield name
 
 
 def xdotool(env, *args, timeout=300):
@@ -424,3 +458,124 @@ def test_the_benchmark_times_the_windows_first_frames(display):
     numbers = startup.view_seconds("cube86", repeats=1, display=display)
     assert set(numbers) == {"view_first_s", "view_stepped_s"}
     assert 0 < numbers["view_first_s"] < numbers["view_stepped_s"]
+
+
+# ---------------------------------------------------------------- the panel on a whole screen
+
+# Text the panel shows at its right end, whole, at either size (cut off, they read "str", "rac"),
+# and before the first step "t = 0.00 s" (tesseract reads its "t" as anything).
+WHOLE_LABELS = ["[h] help", "strength [m/s]", "radius [m]", "(--contact)"]
+
+
+@pytest.fixture(scope="module", params=[(1280, 720), (1920, 1080)], ids=lambda size: f"{size[0]}x{size[1]}")
+def compare_shots(request, tmp_path_factory):
+    """`view epcot --compare` filling a virtual screen of its own size: the screen before the
+    first step (the first frame, on screen while the kernels compile) and after a few steps,
+    the window's place on the screen, and the stats rows."""
+    width, height = request.param
+    folder = tmp_path_factory.mktemp(f"compare{width}")
+    with virtual_display(width, height) as name:
+        env = dict(os.environ, DISPLAY=name)
+        stats = folder / "s.jsonl"
+        log = open(folder / "view.log", "w")
+        window = subprocess.Popen([sys.executable, os.path.join(ROOT, "main.py"), "view", "epcot", "--compare",
+                                   "--size", f"{width}x{height}", "--stats", str(stats)],
+                                  cwd=folder, env=env, stdout=log, stderr=subprocess.STDOUT)
+
+        from PIL import Image
+
+        def screenshot(name):
+            subprocess.run(["import", "-window", "root", str(folder / name)], env=env, check=True, timeout=120)
+            return np.asarray(Image.open(folder / name).convert("RGB"))
+
+        try:
+            wid = xdotool(env, "search", "--sync", "--onlyvisible", "--name", "softfem").split()[0]
+            wait_for(lambda: stats_rows(stats), "the first frame")
+            before = screenshot("before.png")
+            # A few frames after the first steps, so that the frame rate is measured.
+            wait_for(lambda: sum(row["step"] > 0 for row in stats_rows(stats)) >= 4, "frames after the first steps")
+            after = screenshot("after.png")
+            geometry = xdotool(env, "getwindowgeometry", "--shell", wid)
+            log.flush()
+            quit_window(env, wid, window, folder / "view.log")
+        finally:
+            if window.poll() is None:
+                window.kill()
+            log.close()
+    place = dict(line.split("=") for line in geometry.split())
+    return {"size": (width, height), "before": before, "after": after, "rows": stats_rows(stats),
+            "window": [int(place[k]) for k in ("X", "Y", "WIDTH", "HEIGHT")]}
+
+
+def text_pixels(image):
+    """Where image (H, W, 3) uint8 shows the panel's text: white (GGUI draws it unblended)."""
+    image = image.astype(int)
+    return (image.min(axis=-1) >= 170) & (np.ptp(image, axis=-1) <= 25)
+
+
+def panel_columns(shot):
+    """(left, right, inner): the columns where the dark panel at the right edge of a screenshot
+    (H, W, 3) begins and ends, and where its room for text ends (before its scroll bar, if any)."""
+    height = shot.shape[0]
+    rows = shot[height // 10: 9 * height // 10].astype(int)
+    grab = (np.abs(rows - 79) <= 12).all(axis=-1)      # a scroll bar's grey grab
+    # The panel's background and widgets are dark; the view (sky, bodies) is mostly light.
+    dark = (rows.max(axis=-1) < 130).mean(axis=0) > 0.6
+    right = len(dark)
+    while right > len(dark) - 8 and not dark[right - 1]:      # a column or two of the view may show
+        right -= 1
+    left = right
+    while left > 0 and dark[left - 1]:
+        left -= 1
+    inner = right - 14 if grab[:, right - 14: right].sum(axis=0).max() >= 20 else right
+    return left, right, inner
+
+
+def test_the_window_and_its_panel_fit_the_screen(compare_shots):
+    width, height = compare_shots["size"]
+    x, y, w, h = compare_shots["window"]
+    for shot in (compare_shots["before"], compare_shots["after"]):
+        left, right, inner = panel_columns(shot)
+        assert 0.5 * width < left < width - 250, f"no panel at the right edge (from column {left})"
+        # GGUI cuts text 4 pixels inside the panel's edge; text that fits ends 8 pixels inside.
+        ys, xs = np.nonzero(text_pixels(shot[:, left:inner]))
+        cut = sorted(set(ys[xs >= inner - left - 7].tolist()))
+        assert not cut, f"text cut at the panel's right edge (column {inner}) in screen rows {cut[:3]}..."
+    assert (x, y, x + w, y + h) == (0, 0, width, height), "the window does not fill the screen"
+
+
+def test_the_compare_labels_are_not_empty_black_boxes(compare_shots):
+    for shot in (compare_shots["before"], compare_shots["after"]):
+        top = shot[: shot.shape[0] // 8, : panel_columns(shot)[0]]
+        black = top.max(axis=-1) < 40
+        assert black.sum() < 50, f"{black.sum()} black pixels at the top of the view"
+
+
+def read_text(image, scale=3):
+    """The text tesseract reads in image (H, W, 3) uint8: its white text, black on white,
+    enlarged scale times (GGUI's 13-pixel font is too small for it)."""
+    from PIL import Image
+    text = Image.fromarray(np.where(text_pixels(image), 0, 255).astype(np.uint8))
+    path = f"/tmp/ocr-{os.getpid()}.png"
+    text.resize((scale * text.width, scale * text.height), Image.BICUBIC).save(path)
+    try:
+        return subprocess.run(["tesseract", path, "-", "--psm", "6"], capture_output=True, text=True,
+                              check=True, timeout=120).stdout.replace(",", ".")   # "0,02": its misreading
+    finally:
+        os.remove(path)
+
+
+@pytest.mark.skipif(shutil.which("tesseract") is None, reason="tesseract not installed (apt-get install tesseract-ocr)")
+def test_the_panel_reads_whole_and_shows_no_figure_before_it_is_measured(compare_shots):
+    before, after = compare_shots["before"], compare_shots["after"]
+    first = read_text(before[:, panel_columns(before)[0]:])
+    assert re.search(r"= \d\.\d\d s", first), first      # "t = 0.00 s" (its 0 reads as 8 at times)
+    assert "nan" not in first.lower(), first
+    assert not re.search(r"\d[ \t]*fps", first), f"a frame rate before any frame was timed:\n{first}"
+    text = read_text(after[:, panel_columns(after)[0]:])
+    missing = [label for label in WHOLE_LABELS if label not in text]
+    assert not missing, f"not read whole: {missing} in\n{text}"
+    fps = re.search(r"([\d.]+) fps", text)
+    assert fps and 0 < float(fps.group(1)) < 1000, text
+    labels = read_text(after[: after.shape[0] // 8, : panel_columns(after)[0]], scale=1)
+    assert "linear" in labels and "corotational" in labels, labels

@@ -9,7 +9,7 @@ import numpy as np
 import taichi as ti
 
 from app.window import orbit, picking
-from app.window.panel import PANEL_WIDTH
+from app.window.panel import panel_width
 
 MARKER_SECONDS = 0.8            # how long a click's hit point and arrow stay drawn
 DRAG_PIXELS = 6                 # a press and release further apart than this is a drag
@@ -94,7 +94,7 @@ class Controls:
     def in_view(self):
         """True when the cursor is over the 3D view, not over the panel or the help."""
         x, _ = self.window.get_cursor_pos()
-        return x < 1 - PANEL_WIDTH and not self.show_help
+        return x < 1 - panel_width(self.width) and not self.show_help
 
     def pick(self, pixel):
         origin, direction = self.camera.ray(pixel[0], pixel[1], self.width, self.height)

@@ -2,12 +2,18 @@
 it reads and sets through the panel's buttons, checkboxes and sliders."""
 
 import re
+import textwrap
 from pathlib import Path
 
 import numpy as np
 import taichi as ti
 
-PANEL_WIDTH = 0.29              # of the window's width, on the right
+# GGUI's font (ImGui's ProggyClean, 13 px) gives every character 7 pixels and every line 17.
+CHAR_WIDTH, LINE_HEIGHT = 7, 17
+# The panel's widest line. A slider takes 65 % of the panel and its label (up to 14 characters,
+# "strength [m/s]") the rest, which needs a panel this wide; longer text wraps.
+PANEL_CHARS = 50
+PANEL_MARGIN = 30               # px beside the text: the padding (8 each side) and the scroll bar (14)
 HELP = """\
 left click      push the body along the view ray
 left drag       push along the drag (longer = harder)
@@ -27,11 +33,12 @@ class Panel:
     """The panel and the help window of the Viewer (a mixin: the Viewer holds the state)."""
 
     def draw_panel(self):
-        with self.gui.sub_window("softfem", 1 - PANEL_WIDTH, 0.0, PANEL_WIDTH, 1.0) as g:
-            g.text(f"{self.sim.scene.name}")
-            g.text(f"{self.sim.model.n_tets} tets, {self.sim.model.n_vertices} vertices   [h] help")
+        width = panel_width(self.width)
+        with self.gui.sub_window("softfem", 1 - width, 0.0, width, 1.0) as g:
+            self.text(g, self.sim.scene.name)
+            self.text(g, f"{self.sim.model.n_tets} tets, {self.sim.model.n_vertices} vertices   [h] help")
             if self.message:
-                g.text(self.message)
+                self.text(g, self.message)
             if g.button("run" if self.paused else "pause"):
                 self.paused = not self.paused
             if g.button("step"):
@@ -44,22 +51,25 @@ class Panel:
                 g.text("")
                 section(g)
 
+    def text(self, g, text):
+        """text in the panel, wrapped at its width (a long path breaks anywhere)."""
+        for line in textwrap.wrap(text, panel_chars(self.width)) or [""]:
+            g.text(line)
+
+    def fit(self, label, room=4):
+        """label of a button or checkbox, shortened to fit the panel with `room` characters
+        beside it (the box, a button's frame)."""
+        return shortened(label, panel_chars(self.width) - room)
+
     def draw_stats(self, g):
         s = self.stats
         g.text("Numbers")
-        g.text(f"{self.fps:5.1f} fps, {self.steps_last_frame} step(s)/frame, t = {s['t']:.2f} s"
-               + ("  PAUSED" if self.paused else ""))
-        g.text(f"ms/step: rotations {s.get('rotation_ms', 0):.1f}, solve {s.get('solve_ms', 0):.1f}")
-        g.text(f"ms/frame rendering: {self.render_ms:.1f}")
-        residual = s.get("residual")
-        preconditioner = f" ({s['preconditioner']})" if s.get("preconditioner") else ""
-        g.text(f"{s.get('solver', self.sim.settings.method)}{preconditioner}: {s.get('solver_iters', 0)} iterations, "
-               f"residual {residual if residual is not None else float('nan'):.1e}"
-               + ("" if s.get("converged", True) else "  NOT CONVERGED"))
+        for line in numbers(s, self.fps, self.steps_last_frame, self.render_ms, self.paused):
+            self.text(g, line)
         for body, ratio in zip(self.sim.model.bodies, s["volume_ratio"]):
-            g.text(f"volume {100 * ratio:6.1f} %  {shown_name(body, self.twins)}")
-        g.text(f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
-        g.text(f"inverted tets: {s['inverted_tets']}")
+            self.text(g, f"volume {100 * ratio:6.1f} %  {shown_name(body, self.twins)}")
+        self.text(g, f"kinetic {s['kinetic_energy']:.3g} J, elastic {s['elastic_energy']:.3g} J")
+        self.text(g, f"inverted tets: {s['inverted_tets']}")
 
     def draw_methods(self, g):
         g.text("Method  (c toggles all)")
@@ -68,7 +78,8 @@ class Panel:
         if g.checkbox("corotational (all bodies)", all_corotational) != all_corotational:
             self.toggle_corotation()
             return
-        wanted = ["corotational" if g.checkbox(f"{i}: {shown_name(b, self.twins)}", m == "corotational") else "linear"
+        wanted = ["corotational" if g.checkbox(self.fit(f"{i}: {shown_name(b, self.twins)}"), m == "corotational")
+                  else "linear"
                   for i, (b, m) in enumerate(zip(self.sim.model.bodies, methods))]
         if wanted != methods:
             self.set_methods(wanted)
@@ -84,9 +95,9 @@ class Panel:
             if g.checkbox(f"{mode}", self.coloring.mode == mode) and self.coloring.mode != mode:
                 self.set_color_mode(mode)
         if self.coloring.mode == "volume":
-            g.text(f"volume ratio J: blue {self.coloring.vmin}, grey 1, red {self.coloring.vmax}")
+            self.text(g, f"volume ratio J: blue {self.coloring.vmin}, grey 1, red {self.coloring.vmax}")
         elif self.coloring.mode == "strain":
-            g.text(f"strain energy 0 .. {self.coloring.vmax:.3g} J/m^3 (grows, never shrinks)")
+            self.text(g, f"strain energy 0 .. {self.coloring.vmax:.3g} J/m^3 (grows, never shrinks)")
 
     def draw_contact(self, g):
         """The contact points' toggle, and how many there are (drawn over the bodies)."""
@@ -94,9 +105,9 @@ class Panel:
         if g.checkbox("contact points (t)", self.show_contacts) != self.show_contacts:
             self.toggle_contact_points()
         if self.sim.scene.effects.contact is None:
-            g.text("none: no contact in this scene (--contact)")
+            self.text(g, "none: no contact in this scene (--contact)")
         elif self.show_contacts:
-            g.text(f"{len(self.sim.contact_points)} points where bodies touch (magenta)")
+            self.text(g, f"{len(self.sim.contact_points)} points where bodies touch (magenta)")
 
     def draw_solver(self, g):
         """Solver settings; the engine reads them at every step."""
@@ -107,7 +118,7 @@ class Panel:
         if settings.method == "pcg":
             chosen = self.sim.solver.preconditioner
             name = settings.preconditioner + (f" ({chosen})" if settings.preconditioner == "auto" else "")
-            if g.button(f"preconditioner: {name} (l)"):
+            if g.button(self.fit(f"preconditioner: {name} (l)")):
                 self.next_preconditioner()
         exponent = g.slider_int("tolerance 1e-k", round(-np.log10(settings.tolerance)), 1, 10)
         settings.tolerance = 10.0 ** -exponent
@@ -119,7 +130,7 @@ class Panel:
     def draw_scenes(self, g):
         g.text("Scenes")
         for number, ref in enumerate(self.scene_refs[:9], start=1):
-            if g.button(f"{number} {Path(str(ref)).stem}"):
+            if g.button(self.fit(f"{number} {Path(str(ref)).stem}")):
                 self.switch_scene(ref)
 
     def draw_material(self, g):
@@ -136,7 +147,7 @@ class Panel:
         log_E = g.slider_float("log10 E [Pa]", float(np.log10(E)), 1.0, 8.0)
         nu = g.slider_float("nu", nu, 0.0, 0.49)
         E = 10.0 ** log_E
-        g.text(f"{bodies[body].name}: E = {E:.4g} Pa, nu = {nu:.3f}")
+        self.text(g, f"{bodies[body].name}: E = {E:.4g} Pa, nu = {nu:.3f}")
         changed = not (np.isclose(E, material.E) and np.isclose(nu, material.nu))
         self.material_edit = (body, E, nu) if changed else None
         if changed and not self.window.is_pressed(ti.ui.LMB):
@@ -146,9 +157,45 @@ class Panel:
 
     def draw_help(self):
         lines = HELP.splitlines()
-        with self.gui.sub_window("help (h to close)", 0.05, 0.1, 0.6, 0.045 * len(lines) + 0.06) as g:
+        # sized to the text: the padding (8 each side) and the title bar (19 px) beside it
+        width = (max(map(len, lines)) * CHAR_WIDTH + 16) / self.width
+        height = (len(lines) * LINE_HEIGHT + 19 + 16) / self.height
+        with self.gui.sub_window("help (h to close)", 0.02, 0.05, min(width, 0.96), min(height, 0.9)) as g:
             for line in lines:
                 g.text(line)
+
+
+def panel_width(window_width) -> float:
+    """The panel's width, a fraction of the window's: room for PANEL_CHARS characters, but
+    no more than half a small window."""
+    return min(PANEL_CHARS * CHAR_WIDTH + PANEL_MARGIN, window_width / 2) / window_width
+
+
+def panel_chars(window_width) -> int:
+    """How many characters a line of the panel holds in a window window_width pixels wide."""
+    return int(panel_width(window_width) * window_width - PANEL_MARGIN) // CHAR_WIDTH
+
+
+def numbers(stats, fps, steps_per_frame, render_ms, paused) -> list[str]:
+    """The panel's lines on time, speed and the last solve. A figure not measured yet is not
+    shown: the frame rate before two frames are timed, the solve before the first step.
+    stats: Simulation.stats(); fps: frames per second or None; render_ms: ms or None."""
+    lines = [f"t = {stats['t']:.2f} s, step {stats['step']}" + ("   PAUSED" if paused else ""),
+             f"{fps:.1f} fps, {steps_per_frame} step(s)/frame" if fps is not None else "fps: measuring"]
+    if render_ms is not None:
+        lines.append(f"ms/frame rendering: {render_ms:.1f}")
+    if "residual" not in stats:
+        return lines + [f"{stats['solver']}: no step yet"]
+    preconditioner = f" ({stats['preconditioner']})" if stats.get("preconditioner") else ""
+    residual = "not measured" if stats["residual"] is None else f"{stats['residual']:.1e}"
+    return lines + [f"ms/step: rotations {stats['rotation_ms']:.1f}, solve {stats['solve_ms']:.1f}",
+                    f"{stats['solver']}{preconditioner}: {stats['solver_iters']} iterations",
+                    f"residual {residual}" + ("" if stats.get("converged", True) else "  NOT CONVERGED")]
+
+
+def shortened(text, chars) -> str:
+    """text, or its start and "..." when it is longer than chars."""
+    return text if len(text) <= chars else text[:max(chars - 3, 1)] + "..."
 
 
 def shown_name(body, twins):

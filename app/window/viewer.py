@@ -27,14 +27,13 @@ from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
 from app.render.frame import background, build_frame
 from app.render.ggui import _quiet_taichi, _to_ggui_layout
-from app.render.overlay import draw_points
+from app.render.overlay import draw_labels, draw_points
 from app.render.software import SoftwareRenderer, to_window_layout
 from app.window import orbit
 from app.window.controls import DRAG_PIXELS, MARKER_SECONDS, Controls
-from app.window.panel import PANEL_WIDTH, Panel
+from app.window.panel import Panel, panel_width
 from fem.scene import PRECONDITIONERS
 
-LABEL_SIZE = (0.14, 0.04)       # of the window: the title boxes naming the copies of --compare
 MAX_STEPS_PER_FRAME = 8
 VIDEO_FPS = 30
 MARKER_COLOR = (1.0, 0.85, 0.1)
@@ -46,7 +45,9 @@ class Viewer(Controls, Panel):
         names = list(scenes.builtin_scenes())
         self.scene_refs = names if args.scene in names else [args.scene] + names
         try:
-            self.window = ti.ui.Window("softfem", (width, height), vsync=False)
+            # At the screen's top-left corner (Taichi's default is 100 px in): a window the screen's
+            # size then fits it where no window manager places it, as under Xvfb.
+            self.window = ti.ui.Window("softfem", (width, height), vsync=False, pos=(0, 0))
         # Whatever stops it (no Vulkan driver, GLFW without a display) is one line, not a traceback.
         except Exception as e:
             raise fem.FemError(f"view: cannot open the window: {e}") from None
@@ -68,7 +69,7 @@ class Viewer(Controls, Panel):
         self.paused = self.show_help = self.show_contacts = False
         self.coloring = None
         self.events, self.frame = [], 0
-        self.fps, self.frame_seconds, self.render_ms, self.steps_last_frame = 0.0, 0.0, 0.0, 0
+        self.frame_seconds, self.render_ms, self.steps_last_frame = None, None, 0    # None: not measured yet
         self.press, self.marker, self.marker_until = None, None, 0.0
         self.drag_origin = None
         self.screenshot_due = False
@@ -110,13 +111,15 @@ class Viewer(Controls, Panel):
         self.reset_view()
         self.labels = copy_labels(self.x, int(self.body_starts[self.twins]), self.camera,
                                   self.width / self.height) if self.twins else []
+        self.draw_copy_labels()
         self.stats = sim.stats()
         self.events.append({"type": "scene", "scene": str(ref), "name": scene.name,
                             "methods": self.methods()})
 
     def show_loading(self, ref):
         """One frame saying what is loading, since building a scene takes a second or two."""
-        with self.gui.sub_window("softfem", 1 - PANEL_WIDTH, 0.0, PANEL_WIDTH, 0.2) as g:
+        width = panel_width(self.width)
+        with self.gui.sub_window("softfem", 1 - width, 0.0, width, 0.2) as g:
             g.text(f"loading {ref} ...")
             g.text("(compiling kernels the first time)")
         self.canvas.set_image(self.backdrop)
@@ -133,14 +136,19 @@ class Viewer(Controls, Panel):
 
     # ------------------------------------------------------------ main loop
 
+    @property
+    def fps(self):
+        """Frames per second, from a running mean of the frame time; None before a frame was timed."""
+        return None if self.frame_seconds is None else 1.0 / max(self.frame_seconds, 1e-6)
+
     def loop(self, stats_file):
-        last = time.perf_counter()
+        last = None         # when the frame before began; None: no frame to time yet
         while self.window.running:
             now = time.perf_counter()
-            frame_seconds, last = now - last, now
-            # fps from a running mean of the frame time, which a single slow frame barely moves
-            self.frame_seconds = 0.9 * self.frame_seconds + 0.1 * frame_seconds if self.frame else frame_seconds
-            self.fps = 1.0 / max(self.frame_seconds, 1e-6)
+            frame_seconds, last = (None if last is None else now - last), now
+            if frame_seconds is not None:       # a running mean, which a single slow frame barely moves
+                self.frame_seconds = frame_seconds if self.frame_seconds is None else \
+                    0.9 * self.frame_seconds + 0.1 * frame_seconds
             self.handle_keys()
             self.handle_mouse()
             if not self.window.running:
@@ -157,15 +165,18 @@ class Viewer(Controls, Panel):
             self.frame += 1
             if self.warm_up_due:         # the scene is on screen: now compile what its steps need
                 warm_up(self.sim)
-                self.warm_up_due, last = False, time.perf_counter()
+                # The frame that compiled is no frame to time, nor the first one after it, which
+                # follows the compiling at once.
+                self.warm_up_due, last, self.frame_seconds = False, None, None
         self.stop_video()
 
     def advance(self, frame_seconds):
-        """Real time when the simulation keeps up (as many steps as the frame took), else one step."""
+        """Real time when the simulation keeps up (as many steps as the frame took), else one step
+        (also when the frame was not timed: frame_seconds None)."""
         dt = self.sim.settings.dt
         step_seconds = self.sim.last.get("wall_ms", 0.0) / 1e3
         steps = 1
-        if step_seconds < dt:
+        if frame_seconds is not None and step_seconds < dt:
             steps = int(np.clip(round(frame_seconds / dt), 1, MAX_STEPS_PER_FRAME))
         for _ in range(steps):
             self.sim.step()
@@ -204,6 +215,7 @@ class Viewer(Controls, Panel):
             if method != self.sim.model.bodies[body].method:
                 self.sim.set_method(method, body)
         self.events.append({"type": "methods", "methods": self.methods()})
+        self.draw_copy_labels()
 
     def toggle_video(self):
         if self.video is not None:
@@ -267,7 +279,6 @@ class Viewer(Controls, Panel):
                 self.scene3d.set_camera(g)
                 self.scene3d.ambient_light((1.0,) * 3)
                 self.canvas.scene(self.scene3d)
-            self.draw_copy_labels()
             self.draw_panel()
             if self.show_help:
                 self.draw_help()
@@ -282,14 +293,14 @@ class Viewer(Controls, Panel):
 
     def draw_copy_labels(self):
         """In compare mode, "linear" and "corotational" at the top of the view, over where the
-        copies start. (GGUI places a sub-window once and then leaves it where it is, so the
-        labels cannot follow the copies; at the top, a growing copy does not cover them.)"""
-        if not self.twins:
-            return
-        for label, x in zip(copy_methods(self.methods(), self.twins), (x for _, x in self.labels)):
-            # ImGui shows the title up to "##"; what follows keeps the two windows apart.
-            with self.gui.sub_window(f"{label}##{x:.3f}", x - LABEL_SIZE[0] / 2, 0.01, *LABEL_SIZE) as g:
-                g.text("")
+        copies start, as the export labels them: drawn into the backdrop behind the bodies, so
+        they cost a frame nothing (at the top, a growing copy does not cover them). Called again
+        when the bodies' methods change."""
+        image = np.round(255 * background(self.width, self.height)).astype(np.uint8)
+        if self.twins:
+            methods = copy_methods(self.methods(), self.twins)
+            image = draw_labels(image, [(label, x * self.width) for label, (_, x) in zip(methods, self.labels)])
+        self.rasteriser.backdrop.from_numpy(image.astype(np.float32) / 255)
 
     def draw_marker(self):
         """The last click's hit point and its push as an arrow, or the drag in progress, into the
@@ -344,9 +355,10 @@ def initial_camera(positions, scene_camera, width, height, compare=False) -> Cam
     if compare:
         horizontal = np.hypot(direction[0], direction[2])
         direction = (0.2 * horizontal, direction[1], horizontal)
-    camera = auto_frame(lo, hi, direction=direction, aspect=width * (1 - PANEL_WIDTH) / height)
+    panel = panel_width(width)
+    camera = auto_frame(lo, hi, direction=direction, aspect=width * (1 - panel) / height)
     # Sliding the camera right moves the scene left, to the middle of the uncovered part.
-    return orbit.pan(camera, -PANEL_WIDTH * width / 2, 0.0, height)
+    return orbit.pan(camera, -panel * width / 2, 0.0, height)
 
 
 def copy_labels(positions, split, camera, aspect):
