@@ -114,3 +114,17 @@ def test_section_4_the_one_solve_step_blows_up_where_newton_keeps_the_energy(dt,
     newton = energies["newton"]
     assert newton[0] == pytest.approx(NEWTON_FIRST, rel=NEWTON_SPREAD)
     assert newton[-1] == pytest.approx(NEWTON_END[dt], rel=NEWTON_SPREAD)
+
+
+# Section 5: the torsion bar ten times stiffer, one-solve steps: PCG iterations a step by preconditioner
+SECTION_5 = {"jacobi": 18.0, "two-level": 11.3}
+
+
+@pytest.mark.parametrize("preconditioner", list(SECTION_5))
+def test_section_5_two_level_takes_fewer_iterations_than_block_jacobi(preconditioner):
+    stated(f"({SECTION_5['jacobi']} and {SECTION_5['two-level']} on the lab machine; expect them within 10 %")
+    text = summary("torsion", "--step", "single", "--steps", "40", "--set", "body.*.material.E=5e4",
+                   "--set", f"solver.preconditioner={preconditioner}")
+    assert f"{preconditioner} preconditioner" in text
+    got = float(re.search(r"([\d.]+) solver iterations/step", text).group(1))
+    assert got == pytest.approx(SECTION_5[preconditioner], rel=ITERATIONS_SPREAD)
