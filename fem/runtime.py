@@ -63,6 +63,7 @@ def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False)
         raise FemError(environment.problems()[0])
     brief_source_positions(not debug)
     remember_sources()
+    announce_compiling()
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
     ignore_taichi_arch_variable(arch)
@@ -145,6 +146,37 @@ def remember_sources():
     kernel_impl.textwrap = types.SimpleNamespace(fill=remember(textwrap.fill), dedent=textwrap.dedent)
 
 
+# Who hears of each kernel that is about to compile (compile_listeners, announce_compiling).
+_listeners = []
+
+
+def compile_listeners():
+    """The list of functions called with a kernel's name just before Taichi translates and compiles it:
+    each kernel the first time it runs, and again for each new set of template arguments (a start
+    spends most of its time there: docs/benchmark.md). Append to it, and remove what you added."""
+    return _listeners
+
+
+def announce_compiling():
+    """Tell compile_listeners() before Taichi materialises a kernel: translates its Python into
+    Taichi's IR, which the first launch then compiles or loads from the offline cache. Called
+    between two kernels, never inside one, so a listener may launch kernels that are compiled
+    already (the window draws a frame)."""
+    from taichi.lang import kernel_impl
+
+    if hasattr(kernel_impl.Kernel.materialize, "announced"):
+        return
+    materialize = kernel_impl.Kernel.materialize
+
+    def announced(kernel, *args, **kwargs):
+        for listener in list(_listeners):
+            listener(kernel.func.__name__)
+        return materialize(kernel, *args, **kwargs)
+
+    announced.announced = True
+    kernel_impl.Kernel.materialize = announced
+
+
 def _brief_pos_info(context, node):
     return f'File "{context.file}", line {node.lineno + context.lineno_offset}, in {context.func.func.__name__}:\n'
 
@@ -152,6 +184,11 @@ def _brief_pos_info(context, node):
 def current():
     """{"arch": backend name, "precision": "f32"|"f64"} of the running Taichi, {} before init."""
     return {key: _current[key] for key in ("arch", "precision") if key in _current}
+
+
+def cache_folder():
+    """The folder of Taichi's offline cache, as the running Taichi uses it."""
+    return ti.lang.impl.current_cfg().offline_cache_file_path
 
 
 def requested():

@@ -16,6 +16,7 @@ import scenes
 from app import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, device
 from app import outputs, profile
 from app.files import atomic_open, interrupts_deferred, refuse_overwrite
+from app.compiling import Compiling, start_key
 from app.progress import Progress
 from fem.implicit.integrators import chosen
 from fem.mesh import mesh_quality
@@ -37,7 +38,14 @@ def run(args) -> int:
         for note in outputs.rescue_rows(Path(args.stats)):
             print(note, file=sys.stderr)
     device.start(args)
-    sim = build_simulation(args)
+    with Compiling(Path(args.scene).stem, start_key(args)) as compiling:
+        sim = build_simulation(args)
+        return run_steps(args, sim, compiling)
+
+
+def run_steps(args, sim, compiling):
+    """The steps, the rows and the summary of `simulate`; `compiling` is done after the first step."""
+    to_file = args.stats is not None and args.stats != "-"
     rows = Tally()
     # The summary goes where it does not mix with the rows.
     report = sys.stderr if args.stats == "-" else sys.stdout
@@ -46,6 +54,7 @@ def run(args) -> int:
                 Progress(args.steps, "step", sim.scene.name) as progress:
             for step in range(args.steps):
                 sim.step()
+                compiling.done()
                 if args.profile and step == 0:
                     profile.restart()         # the first step compiles and touches memory first
                 row = sim.stats() if out else sim.last
