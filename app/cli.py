@@ -2,27 +2,23 @@
 
     python main.py                        # the window (or, without a display, export the default scene)
     python main.py help                   # the commands; `help COMMAND` for one of them
-    python main.py simulate cube86 --steps 50 --stats s.jsonl
-    python main.py simulate my_shape.obj  # your own surface or tet mesh, as a one-body scene
+    python main.py simulate cube86 --steps 50 --stats s.jsonl && python main.py plot s.jsonl
     python main.py export epcot --compare --frames 150 --out out/epcot-compare --video out/epcot-compare.mp4
-    python main.py view bunny
-    python main.py bench --quick
-    python main.py figures --out out/figures
-    python main.py scenes
 
-Bad input ends with one line `error: ...` on stderr and exit code 2, before any
-work starts where it can be found out then (a traceback only with --debug).
-Exit codes: 0 done, 1 the run failed (every step rejected), 2 bad input,
-130 interrupted (Ctrl-C, SIGTERM, SIGHUP, SIGQUIT, SIGUSR1/2, SIGALRM, SIGXCPU; complete files
-and rows are kept).
+Bad input ends with one line `error: ...` on stderr and exit code 2, before any work starts
+where it can be found out then (a traceback only with --debug). Exit codes: 0 done, 1 the run
+failed (every step rejected), 2 bad input, 130 interrupted (Ctrl-C, SIGTERM, SIGHUP, SIGQUIT,
+SIGUSR1/2, SIGALRM, SIGXCPU; complete files and rows are kept).
 """
 
 import argparse
 import contextlib
 import difflib
 import errno
+import importlib
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -42,12 +38,14 @@ OUTPUTS = {
     "view": [("stats", "--stats", "file"), ("out", "--out", "folder")],
     "bench": [("out", "--out", "folder")],
     "figures": [("out", "--out", "folder")],
+    "plot": [("out", "--out", "file")],
 }
 EPILOG = """\
 examples:
   {prog}                                     the window; without a display, export the default scene
   {prog} simulate my_shape.obj --steps 200   your own mesh (OBJ/STL/PLY/OFF surface, .mesh/.msh/.vtk tets)
   {prog} export epcot --compare --frames 60  linear vs corotational as PNG frames in out/epcot-N
+  {prog} plot a.jsonl b.jsonl --out ab.png   draw simulate's --stats files over each other
   {prog} help export                         every option of one command
 
 SCENE is a built-in name (see `scenes`), a .toml scene file, a coursework *-scene.txt,
@@ -88,21 +86,26 @@ class Parser(argparse.ArgumentParser):
         sys.exit(EXIT_BAD_INPUT)
 
     def option_hint(self, message) -> str:
-        """'; did you mean --steps?' when argparse did not recognise a mistyped option (`--stpes`),
-        or '; --frames is an option of export' for another command's option. The top-level parser
-        reports a command's unknown options, so the command is looked for in `self.argv`."""
+        """'; did you mean --steps?' for a mistyped option (`--stpes`) or a number given to a choice
+        (`--step 10`); '; --frames is an option of export' for another command's option. The top-level
+        parser reports a command's unknown options, so the command is looked for in `self.argv`."""
         commands = getattr(self, "commands", {})
         given = [commands[word] for word in getattr(self, "argv", []) if word in commands][:1]
-        options = set(self._option_string_actions)
+        actions = dict(self._option_string_actions)
         for command in given or commands.values():
-            options |= set(command._option_string_actions)
-        unknown = message.removeprefix("unrecognized arguments: ").split() \
-            if message.startswith("unrecognized arguments: ") else []
+            actions |= command._option_string_actions
+        choice = re.match(r"argument (--[\w-]+): invalid choice: '(.*)' \(choose", message)
+        if choice:
+            option, value = choice.groups()
+            close = [word for word in difflib.get_close_matches(option, sorted(set(actions) - {option}))
+                     if takes_number(actions[word], value)]
+            return f"; did you mean {close[0]}?" if close else ""
+        unknown = message.removeprefix("unrecognized arguments: ").split() if message.startswith("unrecognized") else []
         for word in (word.split("=")[0] for word in unknown if word.startswith("--")):
             owners = [name for name, command in commands.items() if word in command._option_string_actions]
             if owners:
                 return f"; {word} is an option of {' and '.join(owners)}"
-            close = difflib.get_close_matches(word, sorted(options), n=1)
+            close = difflib.get_close_matches(word, sorted(actions), n=1)
             if close:
                 return f"; did you mean {close[0]}?"
         return ""
@@ -113,14 +116,21 @@ class Parser(argparse.ArgumentParser):
         (file or sys.stdout).write(self.format_help())
 
     def exit(self, status=0, message=None):
-        """After --help or --version: what they printed is flushed here, so that a reader that
-        went away (`--version | true`) ends the run quietly, as in main(), and a full disk
-        reaches main() as an OSError."""
+        """After --help or --version: what they printed is flushed here, so that a gone reader
+        (`--version | true`) ends the run quietly, as in main(); a full disk reaches main() as an OSError."""
         try:
             sys.stdout.flush()
         except BrokenPipeError:
             status = reader_gone()
         super().exit(status, message)
+
+
+def takes_number(action, text) -> bool:
+    """True when the option of argparse `action` reads `text` as its number (--steps reads 10)."""
+    try:
+        return isinstance(action.type(text), (int, float))
+    except (TypeError, ValueError, argparse.ArgumentTypeError):      # no type (a flag), or not its number
+        return False
 
 
 def number(kind, low, inclusive=False):
@@ -193,7 +203,7 @@ def build_parser(prog="main.py"):
     parser = Parser(prog=prog, description="Linear and corotational soft bodies (tet FEM, Taichi).",
                     epilog=EPILOG.format(prog=prog), formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--version", action=Version, help="print the version and exit")
+    parser.add_argument("--version", action=Version, nargs=0, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     parser.commands = sub.choices    # {name: that command's parser}
 
@@ -262,6 +272,12 @@ def build_parser(prog="main.py"):
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
     add_common(p)
 
+    p = sub.add_parser("plot", help="draw --stats files against t: energies, volume, iterations, residual")
+    p.add_argument("stats", nargs="+", metavar="STATS.jsonl", help="files written by `simulate --stats`")
+    p.add_argument("--out", metavar="FILE.png", help="the picture, FILE.json its numbers (default: STATS.png)")
+    p.add_argument("--quantity", nargs="+", metavar="KEY", help="draw these keys instead, a panel each")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing picture and its numbers")
+
     sub.add_parser("scenes", help="list the built-in scenes")
     p = sub.add_parser("help", help="list the commands, or show one command's options")
     p.add_argument("topic", nargs="?", metavar="COMMAND", help="the command to explain")
@@ -270,9 +286,6 @@ def build_parser(prog="main.py"):
 
 class Version(argparse.Action):
     """--version, reading the version only when asked (importing the engine takes a second)."""
-
-    def __init__(self, option_strings, dest, **kwargs):
-        super().__init__(option_strings, dest, nargs=0, **kwargs)
 
     def __call__(self, parser, namespace, values, option_string=None):
         from fem import __version__
@@ -328,9 +341,8 @@ def command_hint(word, commands) -> str:
 
 
 def reader_gone():
-    """The reader of stdout went away (`... --stats - | head`): stop quietly, as other
-    command-line tools do, with SIGPIPE's exit code; stdout goes to /dev/null so that
-    Python's final flush does not fail again."""
+    """The reader of stdout went away (`... --stats - | head`): stop quietly, as other tools do, with
+    SIGPIPE's exit code; stdout goes to /dev/null so that Python's final flush does not fail again."""
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
@@ -342,13 +354,10 @@ def reader_gone():
 def dispatch(args, parser):
     if args.command == "help":
         commands = parser.commands
-        if args.topic is None:
-            parser.print_help()
-        elif args.topic in commands:
-            commands[args.topic].print_help()
-        else:
+        if args.topic is not None and args.topic not in commands:
             parser.error(f"help: no command {args.topic!r}{command_hint(args.topic, commands)}; "
                          f"commands: {', '.join(commands)}")
+        (commands[args.topic] if args.topic else parser).print_help()
         return 0
     if args.command == "scenes":
         import scenes
@@ -363,31 +372,22 @@ def dispatch(args, parser):
         raise FemError("the current folder was removed; change to one that exists") from None
     if args.command == "export" and args.out is None:
         args.out = str(fresh_folder(Path(args.scene).stem))
+    if args.command == "plot" and args.out is None:
+        args.out = str(Path(args.stats[0]).with_suffix(".png"))
     for attribute, option, kind in OUTPUTS.get(args.command, []):
         value = getattr(args, attribute, None)
         if value is not None and value != "-":
             check_output(value, option, kind)
-    if args.command == "simulate":
-        from app.commands import simulate
-        return simulate.run(args)
-    if args.command == "export":
-        from app.commands import export
-        return export.run(args)
-    if args.command == "view":
-        from app.commands import view
-        return view.run(args)
-    if args.command == "bench":
-        from app.commands import bench
-        return bench.run(args)
-    if args.command == "figures":
-        from app.commands import figures
-        return figures.run(args)
-    raise AssertionError(args.command)
+    # Each command is the module of its name, imported only when run (most import the engine).
+    return importlib.import_module(f"app.commands.{args.command}").run(args)
 
 
 def main(argv=None) -> int:
     """Run the command line `argv` (default sys.argv[1:]); returns the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    if sys.stdout is None:      # `main.py ... >&-`: what is meant for stdout is dropped
+        # /dev/null takes the closed descriptor 1, so that no file this run opens gets it.
+        sys.stdout = open(os.devnull, "w")
     for stream in (sys.stdout, sys.stderr):     # a name the terminal cannot show (PYTHONIOENCODING=ascii)
         with contextlib.suppress(AttributeError, ValueError):        # a stream without reconfigure (tests)
             stream.reconfigure(errors="backslashreplace")

@@ -87,12 +87,19 @@ def test_help_of_one_command_shows_its_options(here):
                                         (["help", "simulat"], "no command 'simulat'; did you mean simulate?"),
                                         (["simulate", "cube", "--stpes", "5"], "--stpes 5; did you mean --steps?"),
                                         (["export", "cube", "--frame=3"], "--frame=3; did you mean --frames?"),
+                                        (["simulate", "cube", "--step", "10"],
+                                         "'10' (choose from 'newton', 'single'); did you mean --steps?"),
                                         (["epcot", "--linear"], "e.g. `main.py simulate epcot --linear`")])
 def test_a_mistyped_command_or_option_gets_a_did_you_mean(here, argv, hint):
     code, out, err = run(*argv)
     assert code == 2 and out == ""
     one_error_line(err, hint)
     assert list(here.iterdir()) == []
+
+
+def test_a_word_given_to_a_choice_is_not_taken_for_a_number(here):
+    code, _, err = run("simulate", "cube", "--step", "newtn")
+    assert code == 2 and "did you mean" not in one_error_line(err, "invalid choice: 'newtn'")
 
 
 @pytest.mark.parametrize("argv", [["--linear"], ["--frames", "3"], ["--debug"]])
@@ -143,6 +150,15 @@ def test_stats_to_stdout_keeps_stdout_pure_json_and_the_summary_on_stderr(here):
     rows = [json.loads(line) for line in out.splitlines()]
     assert [r["step"] for r in rows] == [1, 2, 3]
     assert "ms/step" in err and "scene cube86" in err
+
+
+def test_a_closed_stdout_drops_what_was_meant_for_it(tmp_path):
+    """`main.py ... >&-` starts Python without a stdout (sys.stdout is None): the run still ends
+    with exit code 0, no traceback, and writes its files."""
+    command = f"exec {sys.executable} {ROOT / 'main.py'} simulate torsion --steps 2 --stats s.jsonl >&-"
+    done = subprocess.run(["bash", "-c", command], cwd=tmp_path, stderr=subprocess.PIPE, text=True, timeout=600)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    assert len((tmp_path / "s.jsonl").read_text().splitlines()) == 2
 
 
 @pytest.mark.parametrize("argv, says", [((), "dt 0.02 s, trapezoidal (auto), solver"),
