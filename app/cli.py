@@ -26,7 +26,7 @@ from app import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, program_name
 from app import outputs
 from app.display import display_problem
 from app.files import check_output, interrupt_on_sigterm
-from fem.errors import FemError, SizeLimitError
+from fem.errors import FemError, SizeLimitError, one_line
 from fem.scene import INTEGRATOR_CHOICES
 
 DEFAULT_SCENE = "epcot"
@@ -82,7 +82,7 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
 
     def error(self, message):
-        print(f"error: {self.prog}: {message}{self.option_hint(message)} (see --help)", file=sys.stderr)
+        print(f"error: {self.prog}: {one_line(message)}{self.option_hint(message)} (see --help)", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
 
     def option_hint(self, message) -> str:
@@ -425,7 +425,7 @@ def main(argv=None) -> int:
         if args.debug:
             raise
         hint = "; --allow-large lifts the limit" if isinstance(e, SizeLimitError) else ""
-        print(f"error: {e}{hint}", file=sys.stderr)
+        print(f"error: {one_line(e)}{hint}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         # The commands say what they kept; this is an interruption before they wrote anything.
@@ -438,7 +438,7 @@ def main(argv=None) -> int:
             raise
         if e.filename is None:
             return stdout_failed(e)
-        print(f"error: {outputs.write_failed(e.filename, e)}", file=sys.stderr)
+        print(f"error: {one_line(outputs.write_failed(e.filename, e))}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
 

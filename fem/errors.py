@@ -60,3 +60,12 @@ def require_file(path, what="file"):
         raise FemError(f"{path}: no such {what}")
     if reason is not None:
         raise FemError(f"{path}: cannot read it as a {what}: {reason}")
+
+
+def one_line(message):
+    """A message as one line: newlines and other control characters in it (a file named with a
+    newline) written as escapes, so that an `error:` line stays one line."""
+    text = str(message)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)

@@ -210,7 +210,7 @@ def read_tet_mesh(path):
     if suffix != ".mesh" and suffix not in MESHIO_READ_EXTENSIONS:
         known = ", ".join([".mesh", *sorted(MESHIO_READ_EXTENSIONS)])
         raise FemError(f"{path}: unknown tet mesh extension {path.suffix!r} (known: {known})")
-    require_file(path, "mesh file")
+    require_file(path)
     from fem.limits import check_file_size
     check_file_size(path)
     if suffix == ".mesh":
