@@ -3,7 +3,7 @@
 Rooms by role, each importing only downwards (tests/test_layout.py checks it):
 
     cli.py       the command line (`main.py`, `softfem`): parses, checks outputs, dispatches
-    commands/    one module per command: simulate, export, view, bench, figures
+    commands/    one module per command: simulate, export, view, bench, figures, plot
     render/      pictures of a frame: camera, the renderers (base, GGUI, software), colours, overlays
     window/      the interactive window behind `view`: the viewer, its controls and panel,
                  picking a body and orbiting the camera
