@@ -1,4 +1,5 @@
-"""Writing a video (MP4 through ffmpeg, or GIF through Pillow) without ever putting a broken one in place.
+"""Writing frames: a video (MP4 through ffmpeg, or GIF through Pillow) never put in place broken,
+and a thread that writes each frame while the next one is made.
 
 Frames go to a temporary file beside the video; when the encoder is done, its file is
 checked (an MP4's boxes must fill it and hold the index, a GIF must end with its trailer)
@@ -9,6 +10,8 @@ still exits normally.
 import contextlib
 import os
 import shutil
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import imageio.v2
@@ -115,6 +118,63 @@ class VideoWriter:
         finally:
             with contextlib.suppress(OSError):
                 os.unlink(self.temporary)
+        return False
+
+
+class WriterThread:
+    """Calls write(*frame) on a thread of its own for each frame handed to `put`, one at a time,
+    while the caller makes the next frame: Pillow's PNG encoder (zlib) and the pipe into ffmpeg
+    let go of Python's lock (the GIL) while they work. At most two frames are held: the one
+    being written and the one being made.
+
+    put hands a frame over once the one before is written, and raises that frame's error in the
+    caller's thread (FemError for a full disk or a removed folder, VideoFailed, KeyboardInterrupt):
+    the loop stops at its next frame, and no frame is begun after one that failed. Leaving the
+    `with` block waits for the frame being written; leaving it normally raises that frame's error.
+
+    Python runs signal handlers in the main thread only, at its next instruction: a Ctrl-C or
+    SIGTERM that comes while a frame is written is raised before put sees that frame done, so
+    before it hands the next one over. The frame being written is finished and no later frame
+    is begun, as when the loop wrote its frames itself.
+
+    busy_ms: the thread's time on each frame; waited_ms: the caller's time in each put (ms).
+    """
+
+    def __init__(self, write):
+        self.write = write
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-writer")
+        self.pending = None                     # the frame being written (a Future), if any
+        self.busy_ms, self.waited_ms = [], []
+
+    def put(self, *frame):
+        """Wait for the frame before, then have this one written."""
+        start = time.perf_counter()
+        self.wait()
+        self.waited_ms.append(1e3 * (time.perf_counter() - start))
+        self.pending = self.pool.submit(self.timed, *frame)
+
+    def wait(self):
+        """Wait until the frame being written is done; raise its error."""
+        pending, self.pending = self.pending, None
+        if pending is not None:
+            pending.result()
+
+    def timed(self, *frame):
+        start = time.perf_counter()
+        self.write(*frame)
+        self.busy_ms.append(1e3 * (time.perf_counter() - start))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, error, traceback):
+        try:
+            if kind is None:
+                self.wait()
+        finally:
+            # Stopped by an error or an interruption: the frame being written is finished
+            # (its files whole and counted); an error of its own would not be news.
+            self.pool.shutdown(wait=True)
         return False
 
 

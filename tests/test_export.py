@@ -5,6 +5,7 @@ frames and the small cube86 scene keep the whole module under a minute on two co
 """
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from conftest import as_in_a_terminal
 REPO = Path(__file__).resolve().parents[1]
 FRAMES = 4
 SIZE = (160, 128)   # multiples of 16, as H.264 wants
+MS = r"\d+\.\d ms"
 EXPORT = ["cube86", "--frames", str(FRAMES), "--size", f"{SIZE[0]}x{SIZE[1]}", "--steps-per-frame", "3"]
 
 
@@ -70,8 +72,13 @@ def test_export_writes_n_pictures_and_a_video_of_n_frames(workdir, first):
     assert iio.immeta(workdir / "a.mp4", plugin="FFMPEG")["fps"] == pytest.approx(1 / 0.06, rel=1e-3)
     # stderr is not a terminal here: no progress bar redrawn with carriage returns.
     assert "\r" not in first.stderr
-    # The last line on stdout says where the files are.
-    assert first.stdout.strip().splitlines()[-1].endswith("a.mp4")
+    # The last line on stdout says where the files are; the one before, where the time went.
+    lines = first.stdout.strip().splitlines()
+    assert lines[-1].endswith("a.mp4")
+    timing = next(line for line in lines if line.startswith(f"{FRAMES} frames"))
+    assert re.fullmatch(rf"{FRAMES} frames, 3 steps/frame: simulation {MS}/frame \({MS}/step\), rendering "
+                        rf"{MS}/frame \(software\), waiting for the writer {MS}/frame \(it wrote each frame in "
+                        rf"{MS}, beside the loop\)", timing), timing
     assert not list(workdir.glob("**/*softfem-part*"))
 
 
@@ -163,6 +170,29 @@ def test_the_camera_backs_off_when_a_body_would_leave_the_picture():
     direction = lambda c: (c.eye - c.target) / np.linalg.norm(c.eye - c.target)  # noqa: E731
     np.testing.assert_allclose(direction(wider), direction(camera))  # the same view, from further
     assert widened(wider, framed, box, 4 / 3)[0] is wider            # and it never comes back closer
+
+
+def test_the_writer_thread_raises_a_frames_error_and_begins_no_later_frame():
+    """Frames are written on a thread: a full disk there stops the loop at its next frame, as
+    when the loop wrote them itself."""
+    from app.video import WriterThread
+    from fem.errors import FemError
+
+    for frames in (5, 3):     # frame 2 fails with frames to come, and as the last frame
+        written = []
+
+        def write(index):
+            if index == 2:
+                raise FemError("frame_00002.png: no space left on device")
+            written.append(index)
+
+        handed = []
+        with pytest.raises(FemError, match="frame_00002.png: no space left on device"):
+            with WriterThread(write) as thread:
+                for index in range(frames):
+                    thread.put(index)
+                    handed.append(index)
+        assert written == [0, 1] and handed == [0, 1, 2]
 
 
 def test_a_failed_encoder_is_reported_with_its_cause(tmp_path):

@@ -10,7 +10,8 @@ import pytest
 import taichi as ti
 
 from app.render.camera import Camera, auto_frame
-from app.render.overlay import BODY_PALETTE, body_colors, draw_legend, draw_text_overlay, scalar_colors
+from app.render.overlay import (BODY_PALETTE, body_colors, draw_legend, draw_text_overlay, scalar_colors,
+                                volume_line)
 from app.render.factory import make_renderer
 
 WIDTH, HEIGHT = 160, 120
@@ -193,6 +194,35 @@ def test_text_overlay_changes_only_its_corner():
     assert changed[:HEIGHT // 4, :WIDTH // 4].any()
     assert not changed[HEIGHT // 2:, :].any() and not changed[:, WIDTH // 2:].any()
     assert image.min() == 200  # the input is left alone
+
+
+def test_the_caption_says_each_fact_once_and_each_volume_ratio():
+    """The export's caption said "epcot (linear vs corotational) / left linear, right corotational:
+    epcot" and no volume ratio."""
+    compare = ["epcot", volume_line([("epcot", "linear", 1.8249), ("epcot", "corotational", 0.9996)])]
+    assert compare == ["epcot", "volume / rest volume: linear 1.82 | corotational 1.00"]
+    text = " ".join(compare)
+    assert [text.count(word) for word in ("epcot", "linear", "corotational")] == [1, 1, 1]
+    assert volume_line([("epcot", "corotational", 1.0)]) == "volume / rest volume: corotational 1.00"
+    # Several bodies: each name once, then its ratio under each method in the same order.
+    pair = [("soft", "linear", 1.31), ("stiff", "linear", 1.02), ("soft", "corotational", 1.0),
+            ("stiff", "corotational", 0.994)]
+    assert volume_line(pair) == "volume / rest volume of soft, stiff: linear 1.31, 1.02 | corotational 1.00, 0.99"
+    # Bodies under different methods: each ratio named by its body.
+    assert volume_line([("soft", "linear", 1.31), ("stiff", "corotational", 1.0)]) == \
+        "volume / rest volume: linear soft 1.31 | corotational stiff 1.00"
+
+
+def test_an_overlay_blends_only_its_panel_exactly_as_over_the_whole_frame():
+    """Blending the whole frame took more time than drawing; the part drawn on gives the same pixels."""
+    from PIL import Image, ImageDraw
+
+    from app.render.overlay import PANEL_COLOR, blended
+    image = np.random.default_rng(0).integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
+    layer = Image.new("RGBA", (WIDTH, HEIGHT), (0, 0, 0, 0))
+    ImageDraw.Draw(layer).rounded_rectangle([10, 12, 70, 40], radius=4, fill=PANEL_COLOR)
+    whole = Image.alpha_composite(Image.fromarray(image).convert("RGBA"), layer).convert("RGB")
+    np.testing.assert_array_equal(blended(image, layer), np.asarray(whole))
 
 
 def test_legend_shows_the_colour_ramp():
