@@ -168,10 +168,12 @@ def announce_compiling():
         return
     materialize = kernel_impl.Kernel.materialize
 
-    def announced(kernel, *args, **kwargs):
-        for listener in list(_listeners):
-            listener(kernel.func.__name__)
-        return materialize(kernel, *args, **kwargs)
+    def announced(kernel, key=None, args=None, arg_features=None):
+        # Taichi calls it at every launch; it returns at once for a kernel compiled already
+        if (key or (kernel.func, 0, kernel.autodiff_mode)) not in kernel.compiled_kernels:
+            for listener in list(_listeners):
+                listener(kernel.func.__name__)
+        return materialize(kernel, key=key, args=args, arg_features=arg_features)
 
     announced.announced = True
     kernel_impl.Kernel.materialize = announced

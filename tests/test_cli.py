@@ -47,7 +47,9 @@ def one_error_line(err, *words):
 
 # The line a run without a terminal logs every 10 s (app.progress): a loaded machine prints
 # some before an error found late in the run (a full disk, a video another run wrote).
-PROGRESS_LINE = re.compile(r".+: \d+/\d+ \w+s \(\d+ %\) after \d+ s")
+# The progress of a run's steps or frames (app/progress.py), and of its kernels compiling (app/compiling.py).
+PROGRESS_LINE = re.compile(r".+: \d+/\d+ \w+s \(\d+ %\) after \d+ s"
+                           r"|.+: compiling kernels, \d+( of \d+)? \(\d+ s\)|.+: compiled \d+ kernels? in [\d.]+ s")
 
 
 def final_error_line(err, *words):

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from test_cli import ROOT, one_error_line
+from test_cli import ROOT, final_error_line, one_error_line
 
 
 def simulate(tmp_path, change):
@@ -52,7 +52,7 @@ def test_stdout_on_a_full_device_is_one_error_line(tmp_path, argv):
     with open("/dev/full", "w") as full:
         run = main_py(tmp_path, *argv, stdout=full)
     assert run.returncode == 2
-    one_error_line(run.stderr, "standard output: no space left on device")
+    final_error_line(run.stderr, "standard output: no space left on device")
 
 
 @pytest.mark.parametrize("argv", [["--version"], ["--help"], ["help", "export"]])

@@ -12,6 +12,7 @@ Medians of `repeats` runs, wall seconds. The cold runs each use a new empty cach
 """
 
 import contextlib
+import json
 import os
 import shutil
 import statistics
@@ -32,6 +33,26 @@ def process_seconds(scene, cache=None):
     subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", scene, "--steps", "1"],
                    env=env, check=True, capture_output=True, timeout=600)
     return time.perf_counter() - start
+
+
+def breakdown(scene, options=(), repeats=3):
+    """Where a warm start of `main.py simulate SCENE [options] --steps 1` goes: the median over
+    `repeats` new processes (after one that fills the cache) of each figure that
+    app/bench/startup_probe.py prints (imports, Taichi's start, building, the first step; the
+    kernels' translating and compiling or loading, their count and variants), with the
+    slowest kernels of the median run."""
+    command = [sys.executable, "-m", "app.bench.startup_probe", scene, *options]
+
+    def probe():
+        run = subprocess.run(command, cwd=ROOT, check=True, capture_output=True, text=True, timeout=900)
+        return json.loads(run.stdout.splitlines()[-1])
+
+    probe()
+    runs = sorted((probe() for _ in range(repeats)), key=lambda run: run["total_s"])
+    median = runs[len(runs) // 2]
+    figures = {key: statistics.median(run[key] for run in runs) for key, value in median.items()
+               if isinstance(value, (int, float))}
+    return {"scene": scene, "options": list(options), **figures, "slowest": median["slowest"]}
 
 
 def first_step_seconds(scene):
