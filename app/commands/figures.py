@@ -53,6 +53,7 @@ from app.bench import plot as bench_plot
 from app.bench import report as bench_report
 from app.commands.export import DIVIDER_COLOR, View
 from app.files import atomic_open, refuse_overwrite
+from app.render.overlay import volume_line
 from fem.errors import FemError
 from scenes.hard_cases import ENERGY_TOLERANCE, HARD_CASES, build_scene
 
@@ -215,8 +216,8 @@ class CompareRun:
         names = [body.name for body in self.scene.bodies]
         volumes = {"linear": dict(zip(names, ratios[:len(names)])),
                    "corotational": dict(zip(names, ratios[len(names):]))}
-        lines = [f"t = {self.sim.t:.2f} s", *extra_lines, "volume / rest volume: " + "; ".join(
-            f"{method} " + ", ".join(f"{v:.2f}" for v in by_body.values()) for method, by_body in volumes.items())]
+        bodies = [(name, method, ratio) for method, by_body in volumes.items() for name, ratio in by_body.items()]
+        lines = [f"t = {self.sim.t:.2f} s", *extra_lines, volume_line(bodies)]     # as the export says it
         pictures = {color: view.annotated(view.picture(self.sim), view.caption + lines)
                     for color, view in self.views.items()}
         numbers = {"scene": self.scene.name, "steps": steps, "dt": self.dt, "t": self.sim.t,
