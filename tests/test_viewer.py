@@ -297,6 +297,8 @@ position = [0.8, 0.0, 0.0]
 
 
 def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
+    """A click made a second after the window appears, while the kernels compile, is kept and
+    pushes the body once they are ready; then c, l and t, once it steps."""
     import scenes
     from app.window.viewer import initial_camera
     from PIL import Image
@@ -316,9 +318,9 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
                               cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
         wid = xdotool(env, "search", "--sync", "--onlyvisible", "--name", "softfem").split()[0]
-        # The stats file streams rows as the frames come (`tail -f` follows it).
-        wait_for(lambda: stats.exists() and stats.stat().st_size > 0, "the first frames of the loaded scene")
+        time.sleep(1.0)
         xdotool(env, "mousemove", "--window", wid, str(target[0]), str(target[1]), "click", "1")
+        # The stats file streams rows as the frames come (`tail -f` follows it).
         wait_for(lambda: frames_after_event(tmp_path, "click") >= 10, "frames after the click")
         xdotool(env, "key", "--window", wid, "c")
         wait_for(lambda: frames_after_event(tmp_path, "methods") >= 10, "frames after the toggle")
@@ -344,6 +346,11 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
     assert len(clicks) == 1, f"the click at {target} did not hit a body: {events}"
     click_frame, click = clicks[0]
     assert click["body"] == 1 and click["vertices"] > 0
+    # Made while the kernels compiled: applied in the first frame that steps, where the start's
+    # compiling ends, after waiting for it.
+    compiled = [(frame, e) for frame, e in events if e["type"] == "compiled"]
+    assert len(compiled) == 1 and compiled[0][1]["kernels"] > 0
+    assert click_frame == compiled[0][0] and click["waited_s"] > 0.2, (click, compiled)
     before = [r["kinetic_energy"] for r in rows if r["frame"] < click_frame]
     after = [r["kinetic_energy"] for r in rows if r["frame"] > click_frame]
     assert before and max(before) < 1e-9          # at rest, up to rounding
@@ -470,8 +477,9 @@ WHOLE_LABELS = ["[h] help", "strength [m/s]", "radius [m]", "(--contact)"]
 @pytest.fixture(scope="module", params=[(1280, 720), (1920, 1080)], ids=lambda size: f"{size[0]}x{size[1]}")
 def compare_shots(request, tmp_path_factory):
     """`view epcot --compare` filling a virtual screen of its own size: the screen before the
-    first step (the first frame, on screen while the kernels compile) and after a few steps,
-    the window's place on the screen, and the stats rows."""
+    first step (a second after the first frame, while the kernels compile: "compiling" says
+    whether they still did when it was taken) and after a few steps, the window's place on the
+    screen, and the stats rows."""
     width, height = request.param
     folder = tmp_path_factory.mktemp(f"compare{width}")
     with virtual_display(width, height) as name:
@@ -491,7 +499,9 @@ def compare_shots(request, tmp_path_factory):
         try:
             wid = xdotool(env, "search", "--sync", "--onlyvisible", "--name", "softfem").split()[0]
             wait_for(lambda: stats_rows(stats), "the first frame")
+            time.sleep(1.0)         # the window's frames while warm_up compiles, a few times a second
             before = screenshot("before.png")
+            compiling = not any(row["step"] > 0 for row in stats_rows(stats))
             # A few frames after the first steps, so that the frame rate is measured.
             wait_for(lambda: sum(row["step"] > 0 for row in stats_rows(stats)) >= 4, "frames after the first steps")
             after = screenshot("after.png")
@@ -503,7 +513,8 @@ def compare_shots(request, tmp_path_factory):
                 window.kill()
             log.close()
     place = dict(line.split("=") for line in geometry.split())
-    return {"size": (width, height), "before": before, "after": after, "rows": stats_rows(stats),
+    return {"size": (width, height), "before": before, "compiling": compiling, "after": after,
+            "rows": stats_rows(stats),
             "window": [int(place[k]) for k in ("X", "Y", "WIDTH", "HEIGHT")]}
 
 
@@ -570,6 +581,8 @@ def test_the_panel_reads_whole_and_shows_no_figure_before_it_is_measured(compare
     before, after = compare_shots["before"], compare_shots["after"]
     first = read_text(before[:, panel_columns(before)[0]:])
     assert re.search(r"= \d\.\d\d s", first), first      # "t = 0.00 s" (its 0 reads as 8 at times)
+    if compare_shots["compiling"]:       # "epcot: compiling kernels, 12 of 40 (3 s)"
+        assert re.search(r"compiling kernels. \d+", first), first
     assert "nan" not in first.lower(), first
     assert not re.search(r"\d[ \t]*fps", first), f"a frame rate before any frame was timed:\n{first}"
     text = read_text(after[:, panel_columns(after)[0]:])

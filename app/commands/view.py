@@ -6,7 +6,7 @@ import fem
 from app import EXIT_INTERRUPTED, device, outputs
 from app.display import display_problem
 from app.files import refuse_overwrite
-from app.window.viewer import Viewer
+from app.window.viewer import Viewer, WindowClosed
 
 
 def run(args) -> int:
@@ -16,13 +16,18 @@ def run(args) -> int:
     if to_file:
         refuse_overwrite(args.stats, args.overwrite)
     device.start(args)
-    viewer = Viewer(args, width, height)
+    try:
+        viewer = Viewer(args, width, height)
+    except WindowClosed:              # closed while the first scene compiled
+        return 0
     try:
         if to_file:
             with outputs.open_stream(args.stats, args.overwrite) as stats_file:
                 viewer.loop(stats_file)
         else:
             viewer.loop(sys.stdout if args.stats == "-" else None)
+    except WindowClosed:
+        pass
     except KeyboardInterrupt:
         viewer.stop_video()
         kept = f"; kept the {viewer.frame} complete rows in {args.stats}" if to_file else ""

@@ -3,6 +3,7 @@ it reads and sets through the panel's buttons, checkboxes and sliders."""
 
 import re
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,16 @@ class Panel:
                             self.draw_contact, self.draw_solver, self.draw_material, self.draw_scenes):
                 g.text("")
                 section(g)
+
+    def draw_compiling(self, g):
+        """The panel while kernels compile: what, how far, and the input waiting for them."""
+        self.text(g, self.sim.scene.name if self.sim is not None else f"loading {self.compiling.name}")
+        self.text(g, self.compiling.status(time.monotonic()))
+        if self.stats is not None:       # the scene is built: where it stands (at rest)
+            self.text(g, numbers(self.stats, None, 0, None, self.paused)[0])
+        if self.waiting:
+            keys = [e.key for e in self.waiting if e.pressed]
+            self.text(g, "waiting for them: " + " ".join("click" if key == ti.ui.LMB else key for key in keys))
 
     def text(self, g, text):
         """text in the panel, wrapped at its width (a long path breaks anywhere)."""
@@ -131,7 +142,7 @@ class Panel:
         g.text("Scenes")
         for number, ref in enumerate(self.scene_refs[:9], start=1):
             if g.button(self.fit(f"{number} {Path(str(ref)).stem}")):
-                self.switch_scene(ref)
+                self.scene_due = ref        # loaded at the next frame's start, not inside this one
 
     def draw_material(self, g):
         """E and nu of one body, applied when the slider is let go (changing them rebuilds

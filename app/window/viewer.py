@@ -8,9 +8,14 @@ and talks to it through its public calls: `apply_impulse`, `set_method`,
 One frame: read input -> step the simulation (real time when it keeps up) ->
 draw the bodies, the floor and the panel -> write a stats line.
 
+While a scene starts, Taichi compiles its kernels for seconds (a minute on a cold cache). Between
+two kernels the window shows the picture at rest and "compiling kernels, 12 of 40", and keeps the
+clicks and keys it reads for the first frame that steps (`between_kernels`).
+
 The Viewer's input handling is app/window/controls.py, its panel app/window/panel.py.
 """
 
+import argparse
 import json
 import sys
 import time
@@ -22,6 +27,7 @@ import taichi as ti
 import fem
 import scenes
 from app import outputs
+from app.compiling import Compiling, start_key
 from app.files import atomic_open, atomic_path, numbered_path
 from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
@@ -32,11 +38,20 @@ from app.render.software import SoftwareRenderer, to_window_layout
 from app.window import orbit
 from app.window.controls import DRAG_PIXELS, MARKER_SECONDS, Controls
 from app.window.panel import Panel, panel_width
+from fem import runtime
 from fem.scene import PRECONDITIONERS
 
 MAX_STEPS_PER_FRAME = 8
+# While kernels compile, a frame at most this often, and at most a fifth of the time (a frame
+# takes 40 ms on a software Vulkan driver).
+COMPILING_FRAME_SECONDS = 0.1
+COMPILING_FRAME_SHARE = 0.2
 VIDEO_FPS = 30
 MARKER_COLOR = (1.0, 0.85, 0.1)
+
+
+class WindowClosed(Exception):
+    """The window was closed (Esc, or its close button) while kernels compiled."""
 
 
 class Viewer(Controls, Panel):
@@ -65,13 +80,18 @@ class Viewer(Controls, Panel):
         self.picture = ti.Vector.field(3, ti.f32, (width, height))
         self.marker_point = ti.Vector.field(3, ti.f32, 1)
         self.marker_arrow = ti.Vector.field(3, ti.f32, 16)
-        self.sim = None
+        self.sim = self.stats = None
         self.paused = self.show_help = self.show_contacts = False
         self.coloring = None
         self.events, self.frame = [], 0
         self.frame_seconds, self.render_ms, self.steps_last_frame = None, None, 0    # None: not measured yet
         self.press, self.marker, self.marker_until = None, None, 0.0
         self.drag_origin = None
+        self.waiting = []                # input read while kernels compiled (controls.Input)
+        self.compiling = None            # app.compiling.Compiling while a scene starts
+        self.busy = False                # drawing a frame: between_kernels stays out
+        self.next_compiling_frame = 0.0  # time.perf_counter(), s
+        self.scene_due = None            # a scene chosen in the panel, loaded at the next frame
         self.screenshot_due = False
         self.video, self.video_path, self.video_start, self.video_frames = None, None, 0.0, 0
         self.message = ""
@@ -82,7 +102,9 @@ class Viewer(Controls, Panel):
     def load(self, ref):
         """Build the simulation of a scene; its first frame shows it at rest, then `warm_up`
         compiles every kernel its steps need (a scene of the same kind: none)."""
-        self.show_loading(ref)
+        self.start_compiling(ref)
+        self.sim = self.stats = None  # the old scene's fields go back to the pool: a scene of the same kind compiles nothing
+        self.show_compiling()
         args = self.args
         scene = scenes.load_scene(ref, overrides=args.set if Path(str(ref)).suffix != ".txt" else None,
                                    contact=getattr(args, "contact", False))
@@ -90,7 +112,6 @@ class Viewer(Controls, Panel):
             # A gap as wide as the scene, so that a linear copy growing as it turns stays clear of its twin.
             width = np.ptp(np.concatenate([b.mesh.vertices for b in scene.bodies])[:, 0])
             scene = scene.side_by_side(gap=max(0.5, float(width)))
-        self.sim = None       # the old scene's fields go back to the pool: a scene of the same kind compiles nothing
         sim = fem.Simulation(scene, method=None if args.compare else args.method, solver=args.solver,
                              dt=args.dt, tolerance=args.tol, max_iterations=args.max_iters, step=args.step,
                              integrator=args.integrator)
@@ -116,14 +137,54 @@ class Viewer(Controls, Panel):
         self.events.append({"type": "scene", "scene": str(ref), "name": scene.name,
                             "methods": self.methods()})
 
-    def show_loading(self, ref):
-        """One frame saying what is loading, since building a scene takes a second or two."""
+    # ------------------------------------------------------------ while kernels compile
+
+    def start_compiling(self, ref):
+        """Count the kernels the scene's start compiles (app.compiling: "k of N", N the count of
+        the same start the last time), and show frames between them (between_kernels)."""
+        key = start_key(argparse.Namespace(**dict(vars(self.args), scene=str(ref))))
+        # A scene after another compiles only what that one did not: another count.
+        key = f"view {key}" + (" after another scene" if self.sim is not None else "")
+        self.compiling = Compiling(Path(str(ref)).stem, key).__enter__()
+        runtime.compile_listeners().append(self.between_kernels)
+
+    def end_compiling(self):
+        """The scene steps: stop listening, remember the count, and say in the events what it took."""
+        runtime.compile_listeners().remove(self.between_kernels)
+        self.compiling.done()
+        self.events.append({"type": "compiled", "kernels": self.compiling.kernels,
+                            "seconds": round(time.monotonic() - self.compiling.start, 2)})
+        self.compiling = None
+
+    def between_kernels(self, kernel_name):
+        """Heard before each kernel compiles while a scene starts (fem.runtime.compile_listeners):
+        at most every COMPILING_FRAME_SECONDS, a frame with the picture at rest and a line saying
+        how far the compiling is, which keeps the window answering; the input read meanwhile
+        waits for the first frame that steps. It never steps or pushes (the kernels are not
+        ready), and it hears nothing while a frame is drawn (drawing compiles kernels of its own)."""
+        if self.busy or time.perf_counter() < self.next_compiling_frame:
+            return
+        self.busy = True
+        try:
+            self.waiting += self.read_input()
+            if not self.window.running or any(e.pressed and e.key == ti.ui.ESCAPE for e in self.waiting):
+                raise WindowClosed
+            self.show_compiling()
+        finally:
+            self.busy = False
+
+    def show_compiling(self):
+        """A frame while kernels compile: the picture drawn last (the backdrop before the first),
+        and a panel saying what is compiling."""
+        start = time.perf_counter()
         width = panel_width(self.width)
-        with self.gui.sub_window("softfem", 1 - width, 0.0, width, 0.2) as g:
-            g.text(f"loading {ref} ...")
-            g.text("(compiling kernels the first time)")
-        self.canvas.set_image(self.backdrop)
-        self.window.show()
+        with _quiet_taichi():
+            self.canvas.set_image(self.picture if self.frame else self.backdrop)
+            with self.gui.sub_window("softfem", 1 - width, 0.0, width, 1.0) as g:
+                self.draw_compiling(g)
+            self.window.show()
+        end = time.perf_counter()
+        self.next_compiling_frame = end + max(COMPILING_FRAME_SECONDS, (end - start) / COMPILING_FRAME_SHARE)
 
     def reset_view(self):
         """Frame the bodies, looking along the scene's own camera direction when it has one,
@@ -144,19 +205,25 @@ class Viewer(Controls, Panel):
     def loop(self, stats_file):
         last = None         # when the frame before began; None: no frame to time yet
         while self.window.running:
+            if self.scene_due is not None:
+                self.switch_scene(self.scene_due)
+                last, self.frame_seconds = None, None
             now = time.perf_counter()
             frame_seconds, last = (None if last is None else now - last), now
             if frame_seconds is not None:       # a running mean, which a single slow frame barely moves
                 self.frame_seconds = frame_seconds if self.frame_seconds is None else \
                     0.9 * self.frame_seconds + 0.1 * frame_seconds
             self.handle_keys()
-            self.handle_mouse()
+            if not self.warm_up_due:
+                self.handle_mouse()
             if not self.window.running:
                 break
             if not self.paused and not self.warm_up_due:
                 self.advance(frame_seconds)
             self.stats = self.sim.stats()
             self.draw()
+            if self.compiling is not None and not self.warm_up_due:
+                self.end_compiling()         # the frame after warm_up: its steps and stats are compiled
             if stats_file:
                 row = dict(self.stats, frame=self.frame, events=self.events)
                 stats_file.write(json.dumps(row) + "\n")
@@ -257,6 +324,7 @@ class Viewer(Controls, Panel):
 
     def draw(self):
         start = time.perf_counter()
+        self.busy = True
         self.x = self.sim.positions()
         frame = build_frame(self.x, self.sim.model.surface, self.coloring.colors(self.sim), self.camera,
                             ground_y=self.ground_y(), smooth=True)
@@ -285,7 +353,10 @@ class Viewer(Controls, Panel):
             if self.video is not None or self.screenshot_due:
                 self.capture()
             self.window.show()
-        self.render_ms = 1e3 * (time.perf_counter() - start)
+        self.busy = False
+        end = time.perf_counter()
+        self.next_compiling_frame = end + COMPILING_FRAME_SECONDS
+        self.render_ms = 1e3 * (end - start)
 
     def ground_y(self):
         """The ground's height, m, or None without a ground: then no floor is drawn."""
@@ -342,6 +413,7 @@ class Viewer(Controls, Panel):
             self.screenshot_due = False
 
     def switch_scene(self, ref):
+        self.scene_due = None
         self.stop_video()
         self.load(ref)
 
