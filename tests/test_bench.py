@@ -362,20 +362,90 @@ def test_the_committed_benchmark_page_is_its_json_rendered():
     assert report.markdown(results) == (report.DOCS / "benchmark.md").read_text()
 
 
-def test_point_labels_at_one_place_are_stacked_not_piled():
-    """bench --quick's labels piled on each other where several series share a dt."""
+def boxes_overlap(a, b):
+    return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
+
+
+def test_point_labels_at_one_place_are_spread_out_or_left_out():
+    """bench --quick's labels piled on each other where several series share a dt: each label placed
+    is inside the panel, on no other label and on no point; one with no room is left out."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from app.bench.plot import LABEL_HEIGHT, place_labels
+    from app.bench.plot import place_labels
 
     fig, ax = plt.subplots()
     ax.set_xscale("log"), ax.set_yscale("log")
     ax.plot([1, 10], [1e-3, 1e-1])
-    offsets = place_labels(ax, [(2.0, 1e-2, "0.02 s", "red"), (2.0, 1e-2, "0.02 s", "blue"),
-                                (2.0, 1.01e-2, "1e-05", "green"), (8.0, 1e-3, "J5", "grey"), (2.0, 1e-2, "", "k")])
+    labels = [(2.0, 1e-2, "0.02 s", "red", True)] * 30 + [(8.0, 1e-3, "J5", "grey", False), (2.0, 1e-2, "", "k", True)]
+    written = place_labels(ax, labels)
+    renderer = fig.canvas.get_renderer()
+    boxes = [note.get_window_extent(renderer) for note in written]
+    panel = ax.get_window_extent(renderer)
     plt.close(fig)
-    assert offsets == [(3.0, 3.0), (3.0, 3.0 + LABEL_HEIGHT), (3.0, 3.0 + 2 * LABEL_HEIGHT), (3.0, 3.0)]
+    assert 2 < len(written) < 30 and "J5" in [note.get_text() for note in written]
+    assert all(panel.x0 <= b.x0 and b.x1 <= panel.x1 and panel.y0 <= b.y0 and b.y1 <= panel.y1 for b in boxes)
+    assert not any(boxes_overlap(a, b) for i, a in enumerate(boxes) for b in boxes[i + 1:])
+
+
+def test_the_plots_labels_cover_neither_each_other_nor_the_titles(bench_output):
+    """The point labels of the benchmark's plot, as drawn: inside their panel, clear of each other, of
+    the panel's title, the figure's title, the legend and the axes' labels."""
+    results = json.loads((bench_output / "results.json").read_text())
+    fig = bench_plot.figure(results)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    labels = [(ax, text.get_window_extent(renderer)) for ax in fig.axes for text in ax.texts]
+    others = [*fig.texts, *fig.legends] + [t for ax in fig.axes for t in (ax.title, ax.xaxis.label, ax.yaxis.label)]
+    others = [t.get_window_extent(renderer) for t in others]
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+    assert len(labels) >= 10
+    for i, (ax, box) in enumerate(labels):
+        panel = ax.get_window_extent(renderer)
+        assert panel.x0 <= box.x0 and box.x1 <= panel.x1 and panel.y0 <= box.y0 and box.y1 <= panel.y1
+        assert not any(boxes_overlap(box, other) for _, other in labels[i + 1:])
+        assert not any(boxes_overlap(box, other) for other in others)
+
+
+def test_a_quick_runs_report_says_what_it_measured_and_claims_no_frontier_or_target(bench_output):
+    """bench --quick said "on the frontier on 0 of 2 scenes" and "Target: at least 30 times, not met":
+    its report says it is a quick run, what it measured, and leaves out what it cannot conclude."""
+    assert plan.QUICK.quick and not plan.TEST.quick
+    results = json.loads((bench_output / "results.json").read_text())
+    results["plan"]["quick"] = True
+    results["headline"], numbers = conclusions.headline(results["scenes"], quick=True)
+    md = report.markdown(results)
+    assert md.startswith("# What accuracy costs in time: a quick run\n\n**A quick run** (`bench --quick`): 1 scene "
+                         "(box80), positions compared with the reference at t = 0.08 and 0.2 s, each variant given "
+                         "10 s of wall time (0 of the")
+    for claim in ("on the frontier on", "Frontier (no variant", "On the accuracy/time frontier", "not met",
+                  "Target: at least", ": Newton pays.", "Newton does not pay", "| met |"):
+        assert claim not in md, claim
+    assert "Not measured in a quick run" in md and "run `bench` without --quick" in md
+    assert "A correct step costs" in md and "Corotation costs" in md and "goal at t = 0.2 s on" in md
+    assert numbers["default_step"]["on_frontier"] in (0, 1)    # measured, kept in results.json, not claimed
+    full = report.markdown(json.loads((bench_output / "results.json").read_text()))
+    assert "quick run" not in full.split("\n")[0] and "**`bench --quick`** runs 2 scenes" in full
+
+
+def test_a_cost_is_given_with_its_range_and_marked_within_noise():
+    """Corotation's cost over 2 small scenes came out as a bare "-21 %": a cost is given with its range
+    over the scenes, and one within the timing noise (TIME_RESOLUTION) says so."""
+    assert conclusions.TIME_RESOLUTION == 0.1
+    assert conclusions.cost_text([-3.0, 5.0]) == "+1 % (-3 to +5 %; within noise)"
+    assert conclusions.cost_text([-25.0, -17.0]) == "-21 % (-25 to -17 %)"
+    assert conclusions.cost_text([92.0]) == "+92 %"
+
+
+def test_the_direct_target_is_judged_on_its_own_scene_only(bench_output):
+    """The 30-times target is box50k's: the tests' box80 (or quick's box1k) gets no verdict."""
+    scene, _ = rows_of(bench_output)
+    sentence, ratios = conclusions.direct_comparison(scene)
+    assert sentence.endswith(f"(The target, at least {plan.DIRECT_TARGET} times, is set on {plan.TARGET_SCENE}.)")
+    sentence, _ = conclusions.direct_comparison({**scene, "name": plan.TARGET_SCENE})
+    met = "met" if ratios[plan.direct_backends()[0]] >= plan.DIRECT_TARGET else "not met"
+    assert sentence.endswith(f"Target: at least {plan.DIRECT_TARGET} times, {met}.")
 
 
 def test_the_full_plan_is_the_nine_elastic_scenes_without_contact():

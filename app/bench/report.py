@@ -4,11 +4,12 @@ preconditioners, one table per scene), results.json (every number) and the plot.
 import json
 from pathlib import Path
 
-from app.bench.conclusions import (ORDER_MARGIN, baseline, corotation_cost, direct_comparison, find, fmt, final_error,
-                                   frontier, goal_dt)
+from app.bench.conclusions import (ORDER_MARGIN, TIME_RESOLUTION, baseline, corotation_cost, direct_comparison, find,
+                                   fmt, final_error, frontier, goal_dt)
 from app.bench.measure import PRECONDITIONER_TOLERANCE
-from app.bench.plan import (BASELINE_TOLERANCE, ERROR_GOAL, INTEGRATORS, MIN_REFERENCE_ORDER, REFERENCE_ORDER,
-                            REFERENCE_REFINEMENT, REFERENCE_SETTINGS, SECOND_ORDER, sci, step_name)
+from app.bench.plan import (BASELINE_TOLERANCE, ERROR_GOAL, FULL_BUDGET_S, FULL_CHECKPOINTS, INTEGRATORS,
+                            MIN_REFERENCE_ORDER, QUICK, QUICK_DURATION, REFERENCE_ORDER, REFERENCE_REFINEMENT,
+                            REFERENCE_SETTINGS, SECOND_ORDER, TARGET_SCENE, sci, step_name)
 from app import profile
 from app.bench.plot import numbers, plot
 from app.files import atomic_open
@@ -65,14 +66,53 @@ def explanation(results):
     return reference + "\n\n" + columns
 
 
+def is_quick(results):
+    """Whether the results are a quick run's (plan.QUICK): results from before the flag are full runs'."""
+    return results.get("plan", {}).get("quick", False)
+
+
+def quick_scope(results):
+    """What a quick run measured, and what it cannot conclude: the paragraph at the top of its report."""
+    plan, scenes = results["plan"], results["scenes"]
+    rows = [r for s in scenes for r in s["variants"] if r["solver"] != "reference"]
+    stopped = sum(r["stopped_early"] for r in rows)
+    checkpoints = " and ".join(f"{t:g}" for t in scenes[0]["checkpoints"]) if scenes else "–"
+    return (f"**A quick run** (`bench --quick`): {len(scenes)} scene{'s' * (len(scenes) != 1)} "
+            f"({', '.join(s['name'] for s in scenes)}), "
+            f"positions compared with the reference at t = {checkpoints} s, each variant given {plan['budget_s']:g} s "
+            f"of wall time ({stopped} of the {len(rows)} variants stopped early, without an error), and none of the "
+            "full run's start-up, stiff bar, kernel profile or contact measurements. It shows that the benchmark "
+            "runs on this machine and what each variant costs and how far it is from the reference on these "
+            "scenes. It cannot conclude what the full run does: which settings are on the accuracy/time "
+            f"frontier across the scenes, whether Newton pays, the speed targets (set on {TARGET_SCENE}, epcot, "
+            "the stiff bar and the pile), or any cost smaller than the spread of timings from run to run "
+            f"(about {100 * TIME_RESOLUTION:g} %). For those, run `bench` without --quick or read docs/benchmark.md, "
+            "the committed full run.")
+
+
+def quick_note():
+    """The full report's paragraph on `bench --quick` (docs/benchmark.md is a full report)."""
+    return (f"**`bench --quick`** runs {len(QUICK.scenes)} scenes ({', '.join(QUICK.scenes)}) to "
+            f"t = {QUICK.checkpoints[-1]:g} s instead of {FULL_CHECKPOINTS[-1]:g} s, with {QUICK.budget_s:g} s of "
+            f"wall time per variant instead of {FULL_BUDGET_S:g} s (variants that need more stop early and get no "
+            "error), and none of the start-up, stiff bar, kernel profile or contact measurements; it takes "
+            f"{QUICK_DURATION}. It checks that the benchmark runs and gives each variant's time and error on those "
+            "scenes; its report says so at the top and leaves out what it cannot conclude: the frontier, whether "
+            "Newton pays, the speed targets, and costs within the timing noise.")
+
+
 def markdown(results):
-    m, lines = results["machine"], []
-    lines += ["# What accuracy costs in time", ""]
+    m, lines, quick = results["machine"], [], is_quick(results)
+    lines += ["# What accuracy costs in time" + (": a quick run" if quick else ""), ""]
+    if quick:
+        lines += [quick_scope(results), ""]
     lines += [f"- {line}" for line in results["headline"]]
     lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores (load average {m['load_average']:.1f} at the start)"
               + (f", GPU {m['gpu']}" if m.get("gpu") else "") + f"; Taichi {m['taichi']} on {m['backend']}, "
               f"{m['precision']}; direct solvers {m['direct_solver']}; Python {m['python']}; {m['date']}; "
               f"{m['bench_minutes']:.1f} minutes.", "", explanation(results), ""]
+    if not quick:
+        lines += [quick_note(), ""]
     lines += targets(results)
     lines += preconditioner_table(results)
     lines += kernel_profile(results)
@@ -116,8 +156,9 @@ def markdown(results):
                 f"| {r['bytes_per_tet']:.0f} | " + " | ".join(fmt(e, ".2e") for e in r["errors"].values())
                 + f" | {r['volume_drift']:.2e} | {fmt(r['energy_drift'], '+.2e')} |")
         lines += ["", direct_split(s)]
-        lines += ["", "Frontier (no variant is both faster per simulated second and more accurate): "
-                  + ", ".join(frontier(s)) + "."]
+        if not quick:
+            lines += ["", "Frontier (no variant is both faster per simulated second and more accurate): "
+                      + ", ".join(frontier(s)) + "."]
     lines += ["", "![error against wall time per simulated second](accuracy_vs_time.png)", ""]
     return "\n".join(lines)
 
@@ -171,7 +212,13 @@ LIMITS = {
 
 
 def targets(results):
-    """The speed targets (issue 12) with what this run measured, met or not, and what limits each."""
+    """The speed targets (issue 12) with what this run measured, met or not, and what limits each
+    (a quick run measures none of them)."""
+    if is_quick(results):
+        return ["## Targets", "",
+                f"Not measured in a quick run: the speed targets are set on {TARGET_SCENE}, epcot, the stiff bar, "
+                "the pile and the start-up, which only the full run (`bench`) measures; docs/benchmark.md has "
+                "them.", ""]
     by_name = {s["name"]: s for s in results["scenes"]}
     rows = []
 
@@ -189,7 +236,7 @@ def targets(results):
     add("`view`, first frame (the scene at rest), warm cache", "<= 3 s", start.get("view_first_s"), "s",
         lambda v: v <= 3, "")
     add("`view`, first stepped frame, warm cache", "(reported)", start.get("view_stepped_s"), "s", None, "")
-    box = by_name.get("box50k")
+    box = by_name.get(TARGET_SCENE)
     row = box and find(box, method="corotational", solver="pcg", step="single", dt_factor=1, tolerance=1e-3)
     if row:
         add("rotation extraction, box50k", "<= 15 ns/tet", 1e6 * row["rotation_ms"] / box["tets"], "ns/tet",
@@ -310,8 +357,10 @@ def kernel_profile(results):
              "H200's bytes), with the bytes each kernel moves as Nsight Compute counts them (`tools/gpu_bytes.py`).",
              ""]
     for kind, table in p["kinds"].items():
+        # results from before the steps' summed wall time was kept (docs/benchmark.json): the median's multiple
+        wall_ms = table.get("wall_ms", table["steps"] * table["ms_median"])
         lines += [f"**{kind} step**, {table['ms_median']:.3g} ms/step median with the profiler on:", "",
-                  profile.markdown(table["rows"], table["steps"], table["wall_ms"], top=15), "",
+                  profile.markdown(table["rows"], table["steps"], wall_ms, top=15), "",
                   f"Launches: {profile.launches_note(table)}.", ""]
     return lines
 

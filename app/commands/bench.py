@@ -14,7 +14,7 @@ from app.bench.conclusions import headline
 from app.bench.measure import (STIFF, compare_preconditioners, contact_cost, kernel_profile, machine,
                                measure_scene, stiff_bar)
 from app.bench.plan import QUICK, REFERENCES, full_plan, variants
-from app.bench.report import DOCS, DOCS_FILES, RESULT_FILES, write
+from app.bench.report import DOCS, DOCS_FILES, RESULT_FILES, quick_scope, write
 from app.files import check_output, refuse_overwrite
 from app.progress import Progress
 from fem.errors import FemError
@@ -47,7 +47,7 @@ def run(args, plan=None):
     with Progress(len(plan.scenes) * runs, "run", "bench") as progress:
         for ref in plan.scenes:
             scenes.append(measure_scene(ref, plan, args, progress))
-    lines, numbers = headline(scenes)
+    lines, numbers = headline(scenes, quick=plan.quick)
     info["bench_minutes"] = (time.perf_counter() - began) / 60
     results = {"machine": info, "plan": vars(plan), "headline": lines, "headline_numbers": numbers,
                "scenes": scenes}
@@ -67,6 +67,6 @@ def run(args, plan=None):
         print(f"bench: contact's cost on {Path(plan.contact).stem}", file=sys.stderr)
         results["contact"] = contact_cost(plan.contact, plan, args, info)      # with the profiler on too
     write(results, folder, names)
-    print("\n".join(lines))
+    print("\n".join(([quick_scope(results)] if plan.quick else []) + lines))
     print(f"wrote {folder / names['md']}, {names['json']}, {names['plot']} ({info['bench_minutes']:.1f} min)")
     return 0
