@@ -248,7 +248,7 @@ def build_parser(prog="main.py"):
     p.add_argument("--overwrite", action="store_true", help="replace an existing stats file")
 
     p = sub.add_parser("bench", help="what accuracy costs in time: tables and a plot")
-    p.add_argument("--quick", action="store_true", help="fewer scenes and steps (under 3 minutes)")
+    p.add_argument("--quick", action="store_true", help="2 scenes to 1 s: a check, no frontier conclusions (~6 min)")
     p.add_argument("--out", default="out/bench", help="output folder (default out/bench)")
     p.add_argument("--scenes", nargs="+", help="scenes to measure (default: all seed scenes and boxes)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
