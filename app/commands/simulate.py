@@ -46,7 +46,7 @@ def run(args) -> int:
 def run_steps(args, sim, compiling):
     """The steps, the rows and the summary of `simulate`; `compiling` is done after the first step."""
     to_file = args.stats is not None and args.stats != "-"
-    rows = Tally()
+    rows, compiled_later = Tally(), []
     # The summary goes where it does not mix with the rows.
     report = sys.stderr if args.stats == "-" else sys.stdout
     try:
@@ -55,14 +55,15 @@ def run_steps(args, sim, compiling):
             for step in range(args.steps):
                 sim.step()
                 compiling.done()
-                if args.profile and step == 0:
-                    profile.restart()         # the first step compiles and touches memory first
                 row = sim.stats() if out else sim.last
                 with interrupts_deferred():      # the row in the file and the count move together
                     if out:
                         out.write(json.dumps(row) + "\n")
                     rows.append(row)
                 progress.update()
+                if args.profile and step == 0:
+                    profile.restart()         # the first step compiles and touches memory first
+                    fem.runtime.compile_listeners().append(compiled_later.append)
     except KeyboardInterrupt:
         kept = f"; kept its {len(rows)} complete rows in {args.stats}" if to_file else ""
         at = f"at step {len(rows) + 1} of {args.steps}" if len(rows) < args.steps else "after its last step"
@@ -70,17 +71,20 @@ def run_steps(args, sim, compiling):
         if rows:
             print(summary(sim, rows), file=report)
         return EXIT_INTERRUPTED
-    table = profile_table(rows) if args.profile else None     # before the summary's own kernels
+    if compiled_later.append in fem.runtime.compile_listeners():
+        fem.runtime.compile_listeners().remove(compiled_later.append)
+    table = profile_table(rows, compiled_later) if args.profile else None    # before the summary's own kernels
     print(summary(sim, rows), file=report)
     if table:
         print(table, file=report)
     return check_rejected(rows, sim.settings.dt)
 
 
-def profile_table(rows):
+def profile_table(rows, compiled_later=()):
     """The kernel profile of the steps after the first (which compiles the kernels), with each
     kernel's share of those steps' wall time; a line saying why there is none with fewer than
-    two steps."""
+    two steps. compiled_later: the kernels that compiled in the profiled steps (a line search's
+    trial that the first step did not need), whose compiling is in the time outside kernels."""
     wall = rows["wall_ms"][1:]
     if not wall:
         return (f"kernel profile: none, as the run took {counted(len(rows), 'step')}: the first step "
@@ -89,7 +93,10 @@ def profile_table(rows):
     table = profile.rows(profile.kernels(), steps, total)
     return (f"kernel profile of the {counted(steps, 'step')} after the first ({statistics.median(wall):.2f} ms/step "
             f"median, {total:.1f} ms in all, with the profiler on):\n"
-            + profile.markdown(table, steps, total))
+            + profile.markdown(table, steps, total)
+            + (f"\n{counted(len(compiled_later), 'kernel')} compiled during these steps (the first step did not "
+               f"need them); their compiling is counted outside kernels: profile more steps to make it a small "
+               f"share" if compiled_later else ""))
 
 
 class Tally:
