@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 import fem
 import main
-from app.bench import conclusions, measure, plan, report
+from app.bench import conclusions, measure, plan, report, startup
 from app.bench import plot as bench_plot
 from app.commands import bench
 from fem.implicit.integrators import chosen
@@ -453,3 +453,17 @@ def test_the_full_plan_is_the_nine_elastic_scenes_without_contact():
     names = plan.full_plan().scenes
     assert "two_boxes" not in names and len(names) == 9
     assert all(plan.make_scene(n).effects.contact is None for n in names if n not in plan.BOXES)
+
+
+def test_a_warm_start_is_broken_down_into_parts_that_add_up():
+    """app/bench/startup_probe.py in a new process: the parts of the start, and the kernels' own share."""
+    start = startup.breakdown("cube86", repeats=1)
+    parts = start["imports_s"] + start["init_s"] + start["build_s"] + start["first_step_s"]
+    assert 0 < parts <= start["total_s"] + 1e-6
+    assert 0 < start["translate_s"] + start["compile_s"] <= start["build_s"] + start["first_step_s"]
+    assert 10 <= start["kernels"] <= start["variants"]
+    assert {"kernel", "translate_s", "compile_s", "variants"} <= set(start["slowest"][0])
+    lines = report.startup_table({"startup": {"breakdown": [start, {**start, "scene": "epcot", "options": ["--contact"]}]}})
+    rows = [line for line in lines if line.startswith("| cube86 ") or line.startswith("| epcot --contact ")]
+    assert len(rows) == 2 and f"{start['total_s']:.2f}" in rows[0]
+    assert report.startup_table({"startup": {}}) == []

@@ -58,6 +58,7 @@ class Plan:
     contact_steps: tuple = (40, 20)  # its steps before the timed ones (the bodies land), and the timed ones
     quick: bool = False   # too little for the full run's conclusions (frontier, targets, costs under the
                           # timing noise): its report says what it measured and leaves those out
+    startup_breakdown: tuple = ()    # (scene, (simulate's options, ...)) whose warm start is broken down
 
 
 FULL_CHECKPOINTS = (0.4, 1.0, 2.0)   # s: the full plan's; a run to 2 s turns the bars by 4 rad
@@ -70,7 +71,14 @@ def full_plan():
     and solver axes compare, and it alone would take longer than all the others together."""
     elastic = [name for name in scenes.builtin_scenes() if scenes.load_scene(name).effects.contact is None]
     return Plan([*elastic, "box1k", "box10k", "box50k"], FULL_CHECKPOINTS, 2, FULL_BUDGET_S, "epcot",
-                "box50k", profile="box50k", contact=PILE)
+                "box50k", profile="box50k", contact=PILE, startup_breakdown=startup_breakdown())
+
+
+def startup_breakdown():
+    """Every built-in scene and the pile as `simulate` starts them, and epcot with each switch that
+    compiles kernels of its own (contact, float64, the kernel profiler)."""
+    starts = [(name, ()) for name in scenes.builtin_scenes()] + [(PILE, ())]
+    return tuple(starts + [("epcot", ("--contact",)), ("epcot", ("--precision", "f64")), ("epcot", ("--profile",))])
 
 
 PILE = str(Path(__file__).resolve().parents[2] / "examples" / "pile.toml")   # 20 boxes falling onto each other

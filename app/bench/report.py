@@ -114,6 +114,7 @@ def markdown(results):
     if not quick:
         lines += [quick_note(), ""]
     lines += targets(results)
+    lines += startup_table(results)
     lines += preconditioner_table(results)
     lines += kernel_profile(results)
     lines += contact_cost(results)
@@ -275,6 +276,34 @@ def targets(results):
             "Measured in this run (start-up: `app/bench/startup.py`, medians of 3; the window on $DISPLAY or, "
             "without one, a virtual display, Xvfb). No GPU was available.", "",
             "| target | goal | measured | verdict | what limits it |", "|---|---|---:|---|---|", *rows, ""]
+
+
+def startup_table(results):
+    """Where a warm start of `simulate SCENE --steps 1` goes, per scene and switch, and its slowest
+    kernels (app/bench/startup_probe.py); [] when the run did not measure it."""
+    starts = results.get("startup", {}).get("breakdown")
+    if not starts:
+        return []
+    lines = ["## Where a warm start goes", "",
+             "`main.py simulate SCENE --steps 1` in a new process, Taichi's offline cache filled (medians of 3, "
+             "seconds; `app/bench/startup_probe.py`). *imports*: Python's, Taichi's among them; *Taichi*: "
+             "`ti.init`; *build*: the scene read, the model and solver made; *first step* holds the kernels' "
+             "*translate* (Taichi turning each kernel's Python into its IR, on every start) and *compile* (the "
+             "first launch: Taichi 1.7's CPU cache keeps LLVM IR, so LLVM makes machine code again); "
+             "*kernels* / *variants*: kernels compiled, and with each set of template arguments counted.", "",
+             "| start | total | imports | Taichi | build | first step | translate | compile | kernels | variants |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in starts:
+        name = " ".join([Path(row["scene"]).stem, *row["options"]])
+        lines.append(f"| {name} | {row['total_s']:.2f} | {row['imports_s']:.2f} | {row['init_s']:.2f} "
+                     f"| {row['build_s']:.2f} | {row['first_step_s']:.2f} | {row['translate_s']:.2f} "
+                     f"| {row['compile_s']:.2f} | {row['kernels']:.0f} | {row['variants']:.0f} |")
+    first = next((row for row in starts if row["scene"] == "epcot" and not row["options"]), starts[0])
+    lines += ["", f"The slowest kernels of {Path(first['scene']).stem}'s start (translate + compile, s):", "",
+              "| kernel | translate | compile | variants |", "|---|---:|---:|---:|"]
+    lines += [f"| {k['kernel']} | {k['translate_s']:.2f} | {k['compile_s']:.2f} | {k['variants']} |"
+              for k in first["slowest"]]
+    return lines + [""]
 
 
 def integrator_table(scenes):

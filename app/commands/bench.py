@@ -60,6 +60,10 @@ def run(args, plan=None):
         results["startup"] = startup.measure(plan.startup)
         results["startup"]["resting_ms"] = startup.resting_cost(plan.startup)
         results["startup"].update(startup.view_seconds(plan.startup))    # {} without a display
+    if plan.startup_breakdown:
+        print(f"bench: where a warm start goes, {len(plan.startup_breakdown)} starts", file=sys.stderr)
+        results.setdefault("startup", {})["breakdown"] = [startup.breakdown(scene, options)
+                                                          for scene, options in plan.startup_breakdown]
     if plan.profile:
         print(f"bench: kernel profile of {plan.profile}", file=sys.stderr)
         results["profile"] = kernel_profile(plan.profile, args, info)    # last: it restarts Taichi
