@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.errors import FemError, not_a_file
+from fem.errors import FemError, excerpt, not_a_file
 from fem.limits import MAX_INTEGER
 from fem.mesh import MESHIO_READ_EXTENSIONS, TetMesh, read_tet_mesh
 
@@ -175,5 +175,5 @@ def _existing_path(value, base_dir, key):
     if reason == "no such file":
         raise FemError(f"{key} {value!r} not found (looked for {path})")
     if reason is not None:
-        raise FemError(f"{key} {value!r}: {path} is {reason}")
+        raise FemError(f"{key} {excerpt(value, 80)}: {reason}")
     return path

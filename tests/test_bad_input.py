@@ -105,3 +105,11 @@ def test_a_medit_mesh_with_hexahedra_is_refused(tmp_path):
     (tmp_path / "cube.mesh").write_text(text)
     line = one_error_line(tmp_path, "cube.mesh")
     assert "cube.mesh:" in line and "1 hexahedron cell besides tetrahedra" in line
+
+
+@pytest.mark.parametrize("kind, says", [("loop", "a symbolic link that loops"), ("folder", "a folder, not a file")])
+def test_a_scene_whose_mesh_is_no_file_says_what_it_is(tmp_path, kind, says):
+    make(kind, tmp_path / "m.mesh")
+    (tmp_path / "s.toml").write_text('[[body]]\nname = "b"\nmesh = { file = "m.mesh" }\n')
+    line = one_error_line(tmp_path, "s.toml")
+    assert "s.toml" in line and "m.mesh" in line and says in line
