@@ -23,6 +23,16 @@ LOG_INTERVAL_S = 10.0    # this long
 COUNTS_FILE = "softfem-kernel-counts.json"
 
 
+_open = []               # the Compiling contexts open now (start_done ends them)
+
+
+def start_done():
+    """The start is over wherever it is told (an export's first stepped frame): end every open
+    Compiling as its done() does."""
+    for compiling in list(_open):
+        compiling.done()
+
+
 class Compiling:
     """Reports kernels compiled on `stream` (stderr) while the context is open. key: what decides
     which kernels a command compiles (scene, switches, precision), to remember their count by."""
@@ -38,6 +48,7 @@ class Compiling:
 
     def __enter__(self):
         runtime.compile_listeners().append(self.heard)
+        _open.append(self)
         return self
 
     def __exit__(self, kind, *exc):
@@ -47,6 +58,8 @@ class Compiling:
     def done(self, remember=True):
         """The start is over (the first step or frame is done): stop listening, end the line, and
         remember the count for the next start of the same command."""
+        if self in _open:
+            _open.remove(self)
         if self.heard not in runtime.compile_listeners():
             return
         runtime.compile_listeners().remove(self.heard)

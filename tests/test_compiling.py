@@ -67,3 +67,13 @@ def test_a_closed_stream_or_an_error_inside_loses_nothing(f32, tmp_path, monkeyp
     assert compiling.remembered_counts() == {}                 # a start that failed is not a count
     from fem import runtime
     assert runtime.compile_listeners() == []
+
+
+def test_start_done_ends_the_open_start_where_the_command_says(f32, tmp_path, monkeypatch):
+    """export's first stepped frame ends its start: later kernels are not counted as the start's."""
+    monkeypatch.setattr(compiling, "counts_path", lambda: str(tmp_path / "counts.json"))
+    with Compiling("box", "key", stream=io.StringIO()) as start:
+        fresh_kernel()[0](1.0)
+        compiling.start_done()
+        fresh_kernel()[0](1.0)
+    assert start.kernels == 1 and compiling.remembered_counts() == {"key": 1}

@@ -53,6 +53,7 @@ from app import EXIT_INTERRUPTED, device
 from app import outputs
 from app.commands.simulate import Tally, check_rejected
 from app.files import atomic_open, claim, refuse_overwrite
+from app.compiling import Compiling, start_done, start_key
 from app.progress import Progress
 from app.render.camera import Camera, auto_frame
 from app.render.colors import VertexColoring
@@ -124,25 +125,26 @@ def run(args) -> int:
 def simulate_and_write(args, out: Path, video: Path | None, width: int, height: int) -> int:
     """Build the simulation and the view, then write the frames into the locked folder out."""
     device.start(args)
-    scene = scenes.load_scene(args.scene, overrides=args.set, contact=getattr(args, "contact", False))
-    if args.contact_points and scene.effects.contact is None:
-        raise fem.FemError(f"--contact-points: {scene.name} has no contact between bodies to show; add "
-                           "--contact, or `[effects] contact = { distance = 0.01 }` to the scene")
-    sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
-                         solver=args.solver, dt=args.dt, tolerance=args.tol,
-                         max_iterations=args.max_iters, step=args.step,
-                         integrator=args.integrator)
-    steps = steps_per_frame(args.steps_per_frame, args.fps or TARGET_FPS, args.speed, sim.settings.dt)
-    fps = args.fps or video_rate(steps, sim.settings.dt, args.speed)
-    if video is not None:
-        check_video_rate(video, fps, args.fps is not None)
-    view = View(sim, scene, args.compare, args.color, args.renderer, width, height, args.contact_points)
+    with Compiling(Path(args.scene).stem, start_key(args)):     # says so until the first stepped frame
+        scene = scenes.load_scene(args.scene, overrides=args.set, contact=getattr(args, "contact", False))
+        if args.contact_points and scene.effects.contact is None:
+            raise fem.FemError(f"--contact-points: {scene.name} has no contact between bodies to show; add "
+                               "--contact, or `[effects] contact = { distance = 0.01 }` to the scene")
+        sim = fem.Simulation(scene.side_by_side() if args.compare else scene, method=args.method,
+                             solver=args.solver, dt=args.dt, tolerance=args.tol,
+                             max_iterations=args.max_iters, step=args.step,
+                             integrator=args.integrator)
+        steps = steps_per_frame(args.steps_per_frame, args.fps or TARGET_FPS, args.speed, sim.settings.dt)
+        fps = args.fps or video_rate(steps, sim.settings.dt, args.speed)
+        if video is not None:
+            check_video_rate(video, fps, args.fps is not None)
+        view = View(sim, scene, args.compare, args.color, args.renderer, width, height, args.contact_points)
 
-    out.mkdir(parents=True, exist_ok=True)
-    with outputs.FolderLock(out) as lock:
-        outputs.remove_stale_temporaries(out)
-        refuse_overwrite(out, args.overwrite)      # again: another run may have written meanwhile
-        return write_frames(args, sim, scene, view, lock, video, steps, fps)
+        out.mkdir(parents=True, exist_ok=True)
+        with outputs.FolderLock(out) as lock:
+            outputs.remove_stale_temporaries(out)
+            refuse_overwrite(out, args.overwrite)      # again: another run may have written meanwhile
+            return write_frames(args, sim, scene, view, lock, video, steps, fps)
 
 
 def write_frames(args, sim, scene, view, lock, video, steps, fps) -> int:
@@ -179,6 +181,8 @@ def write_frames(args, sim, scene, view, lock, video, steps, fps) -> int:
                 rendered = time.perf_counter()
                 speed = timing_line(timings["step"], 1e3 * (rendered - simulated), view.renderer.name)
                 frames.put(index, picture, lines, speed)
+                if index == 1:
+                    start_done()
                 timings["simulation"].append(1e3 * (simulated - start))
                 timings["rendering"].append(1e3 * (rendered - simulated))
                 progress.update()
