@@ -11,6 +11,7 @@ two States take turns, and a rejected step is simply not swapped in.
 
 import sys
 import time
+from decimal import Decimal
 from dataclasses import asdict, replace
 
 import numpy as np
@@ -140,7 +141,7 @@ class Simulation:
         self.awake = [True] * len(self.model.bodies)
         self.quiet = [0] * len(self.model.bodies)
         self.quiet_speeds = np.zeros(len(self.model.bodies))     # m/s: slower, a body is quiet
-        self.t = self.elapsed = 0.0
+        self.t, self.elapsed = 0.0, Decimal(0)
         self.steps = 0
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
         self.last = {}
@@ -179,10 +180,10 @@ class Simulation:
             if any(self.awake):
                 self.state, self.spare = self.spare, self.state
                 self.fall_asleep()
-            self.elapsed += dt
-            # the sum to 15 significant digits: t = 0.12 s, not the 0.12000000000000001 of
-            # adding 0.02 six times (as stats rows and figure files would show it)
-            self.t = float(f"{self.elapsed:.15g}")
+            # summed in decimal, each dt as it is written: t = 0.94 s after 47 steps of 0.02 s, not
+            # the 0.9400000000000006 of float sums (which stats rows and figure files would show)
+            self.elapsed += Decimal(repr(float(dt)))
+            self.t = float(self.elapsed)
         elif not self.warned_nonfinite:
             print(f"warning: step {self.steps} (t = {self.t:g} s) gave non-finite values; "
                   "rejected it and kept the previous state", file=sys.stderr)

@@ -86,7 +86,7 @@ def measured_drift(seconds, integrators):
             info = sim.step()
             trimmed += info["energy_limited"] + info["retried"]
             if k % DRIFT_SAMPLE == 0:
-                times.append(k * DRIFT_DT)
+                times.append(sim.t)
                 energies.append(sim.stats()["total_energy"] / start["total_energy"])
         spin = np.linalg.norm(angular_momentum(sim)) / np.linalg.norm(angular_momentum(sim, x, v))
         out[integrator] = {"t": times, "energy": energies, "angular_momentum": float(spin), "trimmed": int(trimmed)}
