@@ -128,3 +128,22 @@ def test_section_5_two_level_takes_fewer_iterations_than_block_jacobi(preconditi
     assert f"{preconditioner} preconditioner" in text
     got = float(re.search(r"([\d.]+) solver iterations/step", text).group(1))
     assert got == pytest.approx(SECTION_5[preconditioner], rel=ITERATIONS_SPREAD)
+
+
+# Section 6: epcot over 100 steps: CG and Newton iterations a step (means after the first two), as ranges
+SECTION_6 = {("--linear", "--step", "single"): ("9.8 to 11.0", "1"),
+             ("--corotational", "--step", "single"): ("13.4 to 14.2", "1"),
+             ("--corotational",): ("12.4 to 13.7", "1.8 to 2.1")}
+
+
+@pytest.mark.parametrize("options", list(SECTION_6), ids=["linear", "corotational", "newton"])
+def test_section_6_iteration_counts_are_within_the_sheet_s_ranges(options, tmp_path):
+    cg, newton = SECTION_6[options]
+    stated(f"| {cg} |", f"| {newton} |")
+    stats = tmp_path / "s.jsonl"
+    summary("epcot", *options, "--steps", "100", "--stats", str(stats))
+    rows = [json.loads(line) for line in stats.read_text().splitlines()][2:]
+    for key, stated_range in (("solver_iters", cg), ("newton_iters", newton)):
+        low, _, high = stated_range.partition(" to ")
+        mean = sum(row[key] for row in rows) / len(rows)
+        assert float(low) * (1 - ITERATIONS_SPREAD / 2) <= mean <= float(high or low) * (1 + ITERATIONS_SPREAD / 2), key
