@@ -152,6 +152,64 @@ def test_the_panel_holds_its_longest_lines_at_any_window_width():
     assert 0.35 * panel_width(1280) * 1280 >= 14 * CHAR_WIDTH + 34
 
 
+class ScriptedWindow:
+    """A stand-in for the GGUI window: `polls` is a list of (presses, releases, cursor) that each
+    read of the events returns in turn (cursor: (x, y) in [0, 1], y up, as GGUI gives it)."""
+
+    def __init__(self, polls):
+        self.polls, self.cursor, self.releases = list(polls), (0.5, 0.5), []
+
+    def get_events(self, tag):
+        from types import SimpleNamespace
+
+        import taichi as ti
+        if tag == ti.ui.PRESS:
+            if not self.polls:
+                return []
+            presses, self.releases, self.cursor = self.polls.pop(0)
+            return [SimpleNamespace(key=key) for key in presses]
+        return [SimpleNamespace(key=key) for key in self.releases]
+
+    def get_cursor_pos(self):
+        return self.cursor
+
+    def is_pressed(self, key):
+        return False
+
+
+def test_input_read_while_kernels_compile_waits_for_the_first_step():
+    from app.window.controls import Controls
+
+    class Viewer(Controls):
+        """The little of the viewer that its input handling reads; it notes what it does."""
+        width, height, show_help, strength = WIDTH, HEIGHT, False, 1.0
+
+        def __init__(self, window):
+            self.window, self.camera, self.waiting, self.press, self.done = window, camera(), [], None, []
+
+        def pick(self, pixel):
+            self.done.append(("pick", pixel.tolist()))
+            return picking.Hit(0, np.zeros(3), 5.0, 0)
+
+        def push(self, hit, delta_v, waited_s=0.0):
+            self.done.append("push")
+
+        def toggle_corotation(self):
+            self.done.append("c")
+
+    # A click at (100, 120) px and c, read in the frame before warm_up; then the cursor moves away.
+    window = ScriptedWindow([(["LMB", "c"], ["LMB"], (100 / WIDTH, 1 - 120 / HEIGHT)), ([], [], (0.9, 0.9))])
+    viewer = Viewer(window)
+    viewer.warm_up_due = True
+    viewer.handle_keys()
+    assert viewer.done == [] and len(viewer.waiting) == 3      # warm_up would undo them: kept
+    viewer.warm_up_due = False
+    viewer.handle_keys()
+    # In the order read (presses first: Taichi's events carry no order between the two kinds),
+    # the click picked where the cursor was when it was read.
+    assert viewer.done == [("pick", [100.0, 120.0]), "c", "push"] and viewer.waiting == []
+
+
 def test_a_recording_plays_at_the_speed_it_was_seen(monkeypatch):
     from types import SimpleNamespace
 

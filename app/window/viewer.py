@@ -42,10 +42,10 @@ from fem import runtime
 from fem.scene import PRECONDITIONERS
 
 MAX_STEPS_PER_FRAME = 8
-# While kernels compile, a frame at most this often, and at most a fifth of the time (a frame
+# While kernels compile, a frame at most this often, and in at most a tenth of the time (a frame
 # takes 40 ms on a software Vulkan driver).
 COMPILING_FRAME_SECONDS = 0.1
-COMPILING_FRAME_SHARE = 0.2
+COMPILING_FRAME_SHARE = 0.1
 VIDEO_FPS = 30
 MARKER_COLOR = (1.0, 0.85, 0.1)
 
