@@ -284,9 +284,11 @@ def startup_table(results):
     starts = results.get("startup", {}).get("breakdown")
     if not starts:
         return []
+    when = (f", {starts[0]['date']}, load average {max(row['load_average'] for row in starts):.1f} or less"
+            if "date" in starts[0] else "")
     lines = ["## Where a warm start goes", "",
              "`main.py simulate SCENE --steps 1` in a new process, Taichi's offline cache filled (medians of 3, "
-             "seconds; `app/bench/startup_probe.py`). *imports*: Python's, Taichi's among them; *Taichi*: "
+             f"seconds; `app/bench/startup_probe.py`{when}). *imports*: Python's, Taichi's among them; *Taichi*: "
              "`ti.init`; *build*: the scene read, the model and solver made; *first step* holds the kernels' "
              "*translate* (Taichi turning each kernel's Python into its IR, on every start) and *compile* (the "
              "first launch: Taichi 1.7's CPU cache keeps LLVM IR, so LLVM makes machine code again); "

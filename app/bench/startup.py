@@ -12,6 +12,7 @@ Medians of `repeats` runs, wall seconds. The cold runs each use a new empty cach
 """
 
 import contextlib
+import datetime
 import json
 import os
 import shutil
@@ -48,11 +49,13 @@ def breakdown(scene, options=(), repeats=3):
         return json.loads(run.stdout.splitlines()[-1])
 
     probe()
+    load = os.getloadavg()[0]
     runs = sorted((probe() for _ in range(repeats)), key=lambda run: run["total_s"])
     median = runs[len(runs) // 2]
     figures = {key: statistics.median(run[key] for run in runs) for key, value in median.items()
                if isinstance(value, (int, float))}
-    return {"scene": scene, "options": list(options), **figures, "slowest": median["slowest"]}
+    return {"scene": scene, "options": list(options), **figures, "slowest": median["slowest"],
+            "date": datetime.date.today().isoformat(), "load_average": load}
 
 
 def first_step_seconds(scene):
