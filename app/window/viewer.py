@@ -142,6 +142,8 @@ class Viewer(Controls, Panel):
     def start_compiling(self, ref):
         """Count the kernels the scene's start compiles (app.compiling: "k of N", N the count of
         the same start the last time), and show frames between them (between_kernels)."""
+        if self.compiling is not None:       # a scene chosen in the first frame of the one before
+            self.end_compiling()
         key = start_key(argparse.Namespace(**dict(vars(self.args), scene=str(ref))))
         # A scene after another compiles only what that one did not: another count.
         key = f"view {key}" + (" after another scene" if self.sim is not None else "")
