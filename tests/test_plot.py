@@ -2,37 +2,17 @@
 the size asked for, nothing is replaced without --overwrite, and a file that is not a stats file
 is one `error:` line naming it. Taichi is never started."""
 
-import contextlib
-import io
 import json
 
 import pytest
 import taichi
 from PIL import Image
+from test_cli import one_error_line, run
 
-import main
 from app.commands import plot
 
 WIDTH = round(plot.WIDTH_IN * plot.DPI)
 PANEL_HEIGHT = round(plot.PANEL_HEIGHT_IN * plot.DPI)
-
-
-def run(*argv):
-    """main.main(argv) in this process: (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main.main(list(argv))
-        except SystemExit as exit:      # argparse's usage errors
-            code = exit.code
-    return code, out.getvalue(), err.getvalue()
-
-
-def one_error_line(err, *words):
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for word in words:
-        assert word in lines[0], lines[0]
 
 
 def write_stats(path, rows):
@@ -135,6 +115,7 @@ def test_an_existing_picture_is_replaced_only_with_overwrite(here):
 BAD = {
     "no such file": ([], ["plot", "gone.jsonl"], ["gone.jsonl", "no such file"]),
     "a folder": ([], ["plot", "folder"], ["folder", "is a folder"]),
+    "a device": ([], ["plot", "/dev/zero"], ["/dev/zero", "is a character device, not a file"]),
     "an empty file": ([("empty.jsonl", "")], ["plot", "empty.jsonl"], ["empty.jsonl", "empty"]),
     "a line not JSON": ([("s.jsonl", '{"t": 0.1}\n{"t": 0.2, oops\n')], ["plot", "s.jsonl"],
                         ["s.jsonl:2:", "not a line of JSON"]),

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from app.files import atomic_open, check_output, refuse_overwrite
-from fem.errors import FemError, excerpt
+from fem.errors import FemError, excerpt, not_a_file
 
 WIDTH_IN, PANEL_HEIGHT_IN, DPI = 7.0, 2.2, 100      # the picture: 700 pixels wide, 220 a panel
 LINE_STYLES = ("-", "--", ":", "-.")                 # file i draws with LINE_STYLES[i % 4]
@@ -81,12 +81,13 @@ def read_stats(path) -> Stats:
     """The rows of a stats file, one JSON object a line; blank lines are skipped. FemError,
     naming the file (and line), for anything that is not such a file."""
     path = Path(path)
-    if path.is_dir():
-        raise FemError(f"{path}: is a folder; give a stats file (`simulate --stats FILE.jsonl` writes one)")
+    reason = not_a_file(path)           # a folder, a device (/dev/zero: read for ever), a link that loops
+    if reason == "no such file":
+        raise FemError(f"{path}: no such file")
+    if reason:
+        raise FemError(f"{path}: is {reason}; give a stats file (`simulate --stats FILE.jsonl` writes one)")
     try:
         text = path.read_text(errors="replace")
-    except FileNotFoundError:
-        raise FemError(f"{path}: no such file") from None
     except OSError as error:
         raise FemError(f"{path}: cannot read ({error.strerror})") from None
     stats = Stats(path, [], [])
