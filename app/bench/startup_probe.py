@@ -10,6 +10,7 @@ start) and its first launch, which compiles the IR or loads it from the offline 
 several template arguments (a field, a switch) is a variant each. `app/bench/startup.py` runs it.
 """
 
+import argparse
 import json
 import sys
 import time
@@ -52,22 +53,30 @@ def instrument():
     return kernels
 
 
+def parse(argv):
+    """SCENE and the options of `simulate` that change what a start compiles."""
+    parser = argparse.ArgumentParser(prog="python -m app.bench.startup_probe")
+    parser.add_argument("scene")
+    parser.add_argument("--contact", action="store_true")
+    parser.add_argument("--precision", choices=("f32", "f64"), default="f32")
+    parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--arch", default="cpu")
+    return parser.parse_args(argv)
+
+
 def main(argv):
-    import fem          # noqa: F401 (the engine's imports, Taichi's among them)
+    import fem          # the engine's imports, Taichi's among them
     import scenes
-    from app.cli import build_parser
-    from app.commands.simulate import build_simulation
 
     imported = time.perf_counter()
-    args = build_parser("main.py").parse_args(["simulate", *argv, "--steps", "1"])
+    args = parse(argv)
     kernels = instrument()
     fem.init(args.arch, args.precision, profile=args.profile)
     started = time.perf_counter()
-    sim = build_simulation(args)
+    sim = fem.Simulation(scenes.load_scene(args.scene, contact=args.contact))     # as `simulate` builds it
     built = time.perf_counter()
     sim.step()
     stepped = time.perf_counter()
-    del scenes
     translate = sum(row[0] for row in kernels.values())
     compile_ = sum(row[1] for row in kernels.values())
     slowest = sorted(kernels.items(), key=lambda item: -(item[1][0] + item[1][1]))

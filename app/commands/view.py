@@ -6,7 +6,8 @@ import fem
 from app import EXIT_INTERRUPTED, device, outputs
 from app.display import display_problem
 from app.files import refuse_overwrite
-from app.window.viewer import Viewer, WindowClosed
+from app.window.compiling import WindowClosed
+from app.window.viewer import Viewer
 
 
 def run(args) -> int:
