@@ -189,7 +189,7 @@ def test_a_full_disk_keeps_the_complete_rows(here, monkeypatch):
     disk_filling_after(monkeypatch, int(2.5 * row), ".softfem-part")
     code, out, err = run("simulate", "cube", "--steps", "5", "--stats", "s.jsonl")
     assert code == 2
-    one_error_line(err, "s.jsonl", "no space left on device", "kept the 2 complete rows")
+    final_error_line(err, "s.jsonl", "no space left on device", "kept the 2 complete rows")
     rows = [json.loads(line) for line in (here / "s.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [1, 2]
     assert sorted(p.name for p in here.iterdir()) == ["one.jsonl", "s.jsonl"]
@@ -209,7 +209,7 @@ def test_a_full_disk_keeps_the_complete_frames(here, monkeypatch):
     monkeypatch.setattr(export, "atomic_open", atomic_open)
     code, out, err = run(*SMALL_EXPORT, "--out", "o", "--video", "v.mp4")
     assert code == 2
-    one_error_line(err, "frame_00002.png", "no space left", "kept the 2 complete frames")
+    final_error_line(err, "frame_00002.png", "no space left", "kept the 2 complete frames")
     assert sorted(p.name for p in (here / "o").iterdir()) == ["frame_00000.png", "frame_00001.png"]
     assert video_frames(here / "v.mp4") == 2     # the video closed on them
 
