@@ -18,6 +18,7 @@ import pytest
 from PIL import Image
 
 from conftest import as_in_a_terminal
+from test_cli import final_error_line
 
 REPO = Path(__file__).resolve().parents[1]
 FRAMES = 4
@@ -100,7 +101,8 @@ def test_the_default_renderer_needs_no_vulkan(workdir, first):
 def test_ggui_renderer_draws_the_same_scene(workdir, first):
     result = export(*EXPORT, "--out", "ggui", "--renderer", "ggui", cwd=workdir)
     if result.returncode != 0:
-        assert result.returncode == 2 and result.stderr.startswith("error: --renderer ggui"), result.stderr
+        assert result.returncode == 2, result.stderr
+        final_error_line(result.stderr, "--renderer ggui")
         pytest.skip(f"GGUI cannot open here: {result.stderr.strip()}")
     assert "(ggui)" in result.stderr + result.stdout
     last = np.asarray(Image.open(frames(workdir / "ggui")[-1]).convert("RGB"))

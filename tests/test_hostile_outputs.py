@@ -23,7 +23,7 @@ import pytest
 
 from app import files, outputs, video
 from conftest import as_in_a_terminal
-from test_cli import ROOT, final_error_line, here, one_error_line, run  # noqa: F401  (here is a fixture)
+from test_cli import PROGRESS_LINE, ROOT, final_error_line, here, one_error_line, run  # noqa: F401  (here is a fixture)
 
 SMALL_EXPORT = ["export", "cube86", "--frames", "3", "--size", "64x64", "--renderer", "software"]
 # A run that lasts until it is stopped: cube86 takes milliseconds a step.
@@ -235,7 +235,9 @@ def test_a_signal_while_the_rows_are_put_in_place_keeps_them(here, monkeypatch, 
     monkeypatch.setattr(outputs, "put_in_place", put_in_place)
     code, out, err = run("simulate", "cube86", "--steps", "2", "--stats", "s.jsonl")
     assert code == 130, err
-    assert err.strip() == "interrupted after its last step; kept its 2 complete rows in s.jsonl"
+    *progress, last = err.strip().splitlines()
+    assert last == "interrupted after its last step; kept its 2 complete rows in s.jsonl"
+    assert all(PROGRESS_LINE.fullmatch(line) for line in progress), err
     assert (here / "s.jsonl").read_text().count("\n") == 2 and temporaries_left(here) == []
 
 
