@@ -40,14 +40,19 @@ def model_arrays(scene):
 
 def initial_state(scene, model):
     """(positions, velocities) at t = 0, (n, 3) each, with the scene's initial conditions applied."""
-    x = model.rest_positions_np.copy()
+    return start_state(scene, model.bodies, model.rest_positions_np, model.mass_np, model.free_np)
+
+
+def start_state(scene, bodies, X, mass, free):
+    """initial_state from model_arrays' arrays, before any Model exists (the start's checks)."""
+    x = X.copy()
     v = np.zeros_like(x)
-    offsets = [b.vertices.start for b in model.bodies]
+    offsets = [b.vertices.start for b in bodies]
     for init in scene.initial:
         for body, ids in select_vertices(init.selection, scene.bodies, "initial condition"):
             g = ids + offsets[body]
-            apply_initial(init, x, v, g, model.mass_np[g])
-    return x, v * model.free_np[:, None]
+            apply_initial(init, x, v, g, mass[g])
+    return x, v * free[:, None]
 
 
 def apply_initial(init, x, v, ids, mass):

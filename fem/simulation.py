@@ -18,7 +18,8 @@ import numpy as np
 import taichi as ti
 
 from fem import pool
-from fem.builder import initial_state, model_arrays
+from fem.builder import initial_state, model_arrays, start_state
+from fem.contact_start import check_start
 from fem.errors import FemError
 from fem.scene import METHODS, Material, check_precision, select_vertices
 from fem.implicit.effects import FRICTION_SPEED
@@ -67,7 +68,10 @@ class Simulation:
         settings.check(scene.path or scene.name)
         check_precision(scene, "f64" if ti.lang.impl.get_runtime().default_fp == ti.f64 else "f32")
         self.scene = scene                      # the description; never edited
-        parts = pool.borrow(self, model_arrays(scene), scene.effects, settings)   # fields, kernels compiled
+        arrays = model_arrays(scene)
+        bodies, X, T, mass, free = arrays
+        check_start(scene, start_state(scene, bodies, X, mass, free)[0], bodies, T)
+        parts = pool.borrow(self, arrays, scene.effects, settings)   # fields, kernels compiled
         self.model, self.solver, self.measure = parts.model, parts.solver, parts.measure
         self.state, self.spare = parts.states
         offsets = [b.vertices.start for b in self.model.bodies]
