@@ -37,6 +37,28 @@ from fem.implicit.solver import StepInfo
 # that creep.
 QUIET_STEPS = 25
 QUIET_MOTION = 1e-6
+# A step that ends with a vertex deeper below the ground than SUNK of its body's size (and deeper
+# than it began) is taken again as two steps of dt / 2, and so on, at most MAX_SPLITS halvings deep.
+# The ground is a penalty whose stiffness falls as 1 / dt^2 (fem/implicit/effects.py): a body at rest
+# sinks by about g dt^2 / 1000 per vertex above its bottom, 1 m at dt 10 s. A step still too deep
+# after the last halving is kept and counted (`sunk` in its stats row).
+SUNK = 0.1
+MAX_SPLITS = 4
+
+
+def added(first, second):
+    """The StepInfo of two sub-steps taken as one: counts and times added, finite and converged
+    where both were, the larger residual, the second's integrator."""
+    out = {}
+    for key, a in asdict(first).items():
+        b = getattr(second, key)
+        if isinstance(a, bool):
+            out[key] = a and b
+        elif key == "residual":
+            out[key] = None if a is None or b is None else max(a, b)
+        elif isinstance(a, (int, float)):
+            out[key] = a + b
+    return replace(second, **out)
 
 
 @ti.kernel
@@ -150,6 +172,7 @@ class Simulation:
         self.pending = sorted(self.impulses, key=lambda imp: imp[0])
         self.last = {}
         self.contact_record = {"most_pairs": 0, "smallest_distance": None, "interpenetrating_steps": 0}
+        self.ground_record = {"split_steps": 0, "sunk_steps": 0}      # steps taken in sub-steps; still too deep
         self.contact_points = np.zeros((0, 3))
 
     @property
@@ -174,15 +197,15 @@ class Simulation:
             _, ids, dv = self.pending.pop(0)
             self.apply_impulse(ids, dv)
         self.wake_the_hit(dt)
+        substeps = {"substeps": 1, "sunk": 0} if self.solver.switches.ground else {}
         if any(self.awake):
-            info = self.solver.step(self.state, self.spare, dt)
+            info = self.take(dt, MAX_SPLITS, substeps)
         else:                                   # everything sleeps: the step would change nothing
             info = StepInfo(True, True, 0.0, 0, 0, 0, 0, 0.0, 0.0)
             self.solver.history.forget()
         self.steps += 1
         if info.finite:
             if any(self.awake):
-                self.state, self.spare = self.spare, self.state
                 self.fall_asleep()
             # summed in decimal, each dt as it is written: t = 0.94 s after 47 steps of 0.02 s, not
             # the 0.9400000000000006 of float sums (which stats rows and figure files would show)
@@ -196,10 +219,48 @@ class Simulation:
                      "solver": self.settings.method, "preconditioner": self.solver.preconditioner,
                      "step_kind": self.step_kind, **asdict(info),
                      "corotational": [b.method == "corotational" for b in self.model.bodies],
-                     "asleep": self.asleep}
+                     "asleep": self.asleep, **substeps}
+        if substeps:
+            self.ground_record["split_steps"] += int(substeps["substeps"] > 1)
+            self.ground_record["sunk_steps"] += int(substeps["sunk"] > 0)
         if self.solver.switches.contact:
             self.last.update(self.contact_stats())
         return self.last
+
+    def take(self, dt, splits, substeps):
+        """The solver's step of dt from self.state, swapped in when finite. Where the ground is on and
+        the step would end with a vertex sunk too deep (`sunk`), it is taken again as two of dt / 2,
+        each split the same way at most `splits` times more; the StepInfo then adds up the sub-steps'.
+        substeps: {"substeps", "sunk"} counts the sub-steps taken and the vertices left too deep."""
+        x, v = (self.positions(), self.velocities()) if substeps else (None, None)
+        info = self.solver.step(self.state, self.spare, dt)
+        if not info.finite:
+            return info
+        deep = self.sunk(x) if substeps else 0
+        if deep == 0 or splits == 0:
+            self.state, self.spare = self.spare, self.state
+            if deep:
+                substeps["sunk"] += deep
+            return info
+        self.solver.forget_change()              # its warm starts are of the step not taken
+        substeps["substeps"] += 1
+        first = self.take(dt / 2, splits - 1, substeps)
+        second = self.take(dt / 2, splits - 1, substeps) if first.finite else None
+        if second is None or not second.finite:  # all or nothing: the step is rejected whole
+            self.state.load(x, v)
+            self.solver.forget_change()
+            return first if second is None else second
+        return added(first, second)
+
+    def sunk(self, before):
+        """How many vertices of the solver's new positions (self.spare) lie deeper below the ground
+        than SUNK of their body's size and than they were `before` ((n, 3) m)."""
+        n = self.model.n_vertices
+        after = self.spare.x.to_numpy()[:n, 1].astype(np.float64)
+        ground = self.scene.effects.ground
+        allowed = np.maximum(SUNK * np.array([b.size for b in self.model.bodies])[self.model.vertex_body_np[:n]],
+                             ground - before[:, 1])
+        return int((ground - after > allowed).sum())
 
     def contact_stats(self):
         """Contact between bodies now (fem/implicit/contact.py): contact_pairs, the pairs closer than

@@ -20,6 +20,7 @@ from app.compiling import Compiling, start_key
 from app.progress import Progress
 from fem.implicit.integrators import chosen
 from fem.mesh import mesh_quality
+from fem.simulation import MAX_SPLITS, SUNK
 
 
 def build_simulation(args):
@@ -192,6 +193,11 @@ def summary(sim, rows):
                      f"pairs touching, smallest distance "
                      f"{'none closer than the distance' if smallest is None else f'{smallest:.3g} m'}, "
                      f"{counted(record['interpenetrating_steps'], 'step')} ended with interpenetrating pairs")
+    if sim.solver.switches.ground and (sim.ground_record["split_steps"] or sim.ground_record["sunk_steps"]):
+        split, sunk = sim.ground_record["split_steps"], sim.ground_record["sunk_steps"]
+        lines.append(f"ground: {counted(split, 'step')} taken in sub-steps (dt / 2, / 4, ... / {2 ** MAX_SPLITS}) "
+                     f"where one would have sunk into it; {counted(sunk, 'step')} failed, ending with vertices "
+                     f"deeper than {SUNK:.0%} of their body's size" + (": try a smaller dt" if sunk else ""))
     return "\n".join(lines)
 
 
