@@ -153,18 +153,23 @@ def separation(s, p, q):
 
 
 def check_gaps(where, s, d_hat):
-    """Pieces closer than d_hat: refused with the smallest gap."""
+    """Pieces closer than d_hat: refused with the smallest gap. Only the triangles, edges and
+    vertices within d_hat of another piece's box are paired (none where bodies are far apart)."""
     gaps = []
-    vertices = np.unique(s.triangles)
     centre, radius = triangle_spheres(s)
-    t, v = near(centre, radius + d_hat, s.x[vertices], np.zeros(len(vertices)))
-    v = vertices[v]
+    t = np.flatnonzero(exposed(s, s.triangle_piece, centre, radius + d_hat))
+    v = np.unique(s.triangles)
+    v = v[exposed(s, s.piece[v], s.x[v], np.full(len(v), d_hat))]
+    i, j = near(centre[t], radius[t] + d_hat, s.x[v], np.zeros(len(v)))
+    t, v = t[i], v[j]
     keep = s.piece[v] != s.triangle_piece[t]
     v, t = v[keep], t[keep]
     gaps.append((point_triangle_distance(s.x[v], *s.x[s.triangles[t]].transpose(1, 0, 2)),
                  s.piece[v], s.triangle_piece[t]))
     middle, half = edge_spheres(s)
-    e, f = near(middle, half + d_hat, middle, half)
+    e = np.flatnonzero(exposed(s, s.piece[s.edges[:, 0]], middle, half + d_hat))
+    i, j = near(middle[e], half[e] + d_hat, middle[e], half[e])
+    e, f = e[i], e[j]
     a, b = s.piece[s.edges[e, 0]], s.piece[s.edges[f, 0]]
     keep = (e < f) & (a != b)
     e, f, a, b = e[keep], f[keep], a[keep], b[keep]
@@ -187,11 +192,23 @@ def check_gaps(where, s, d_hat):
 def near(centres, radii, other_centres, other_radii):
     """(i, j): every two spheres, one of each list, that meet: |centres[i] - other_centres[j]| <=
     radii[i] + other_radii[j] (k-d trees list the pairs within the largest sum in C)."""
+    if not len(centres) or not len(other_centres):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     reach = radii.max() + other_radii.max()
     pairs = cKDTree(centres).sparse_distance_matrix(cKDTree(other_centres), reach, output_type="ndarray")
     i, j = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
     keep = pairs["v"] <= radii[i] + other_radii[j]
     return i[keep], j[keep]
+
+
+def exposed(s, pieces, centres, radii):
+    """(k,) bool: the spheres (centres (k, 3), radii (k,)) of elements of the given pieces (k,) that
+    reach into the box of another piece."""
+    out = np.zeros(len(centres), bool)
+    for q in np.flatnonzero(np.isfinite(s.lo[:, 0])):
+        reach = ((centres + radii[:, None] >= s.lo[q]) & (centres - radii[:, None] <= s.hi[q])).all(axis=1)
+        out |= reach & (pieces != q)
+    return out
 
 
 def triangle_spheres(s):
