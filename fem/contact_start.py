@@ -5,13 +5,13 @@ more than the contact distance d_hat. It cannot separate surfaces that start cro
 inside another (they freeze in place, 1e5 J of barrier and more), it throws apart surfaces that
 start closer than d_hat (a first step that gains energy), and a d_hat as thick as a body pushes
 across the whole body. `check_start` refuses each of these with one FemError naming the scene,
-the bodies and the depth or gap in mm:
+the bodies and the depth (`separation`: how far one must move to clear the other) or gap in mm:
 
     1. the proportion: d_hat over a quarter of a body's thickness (its thinnest extent along its
        principal axes);
     2. crossing surfaces: a surface edge through a surface triangle of another body, or of the same
        body where they share no vertex (a body made of two overlapping cubes in one mesh);
-    3. one body inside another: a point of its surface inside the other's (ray parity);
+    3. one body inside another: a vertex of its surface inside the other's surface (ray parity);
     4. gaps below d_hat: the smallest vertex-triangle and edge-edge distances between bodies.
 
 A body of several connected pieces (two cubes in one mesh) is checked piece by piece, as contact
@@ -57,6 +57,7 @@ def mm(metres):
 
 
 def check_proportion(where, d_hat, names, positions):
+    """d_hat over PROPORTION of a body's thinnest extent along its principal axes: refused."""
     for name, x in zip(names, positions):
         centred = x - x.mean(axis=0)
         axes = np.linalg.eigh(centred.T @ centred)[1]
@@ -182,8 +183,8 @@ def check_gaps(where, s, d_hat):
     pairs = {tuple(sorted(pair)) for pair in zip(a[close], b[close])}
     k = np.flatnonzero(close)[np.argmin(distance[close])]
     others = f" (and {len(pairs) - 1} more pairs)" if len(pairs) > 1 else ""
-    raise FemError(f"{where}: {s.between(*sorted((a[k], b[k])))} start {mm(distance[k])} apart{others}, closer than the "
-                   f"contact distance ({mm(d_hat)}), which would throw them apart in the first step: "
+    raise FemError(f"{where}: {s.between(*sorted((a[k], b[k])))} start {mm(distance[k])} apart{others}, closer "
+                   f"than the contact distance ({mm(d_hat)}), which would throw them apart in the first step: "
                    f"place them at least {mm(d_hat)} apart, or use a smaller contact distance")
 
 
@@ -235,9 +236,9 @@ def crossings(s):
     normal = np.cross(s.x[s.triangles[:, 1]] - a, s.x[s.triangles[:, 2]] - a)
     p, q = s.x[s.edges[e, 0]], s.x[s.edges[e, 1]]
     normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
-    above, below = np.einsum("ij,ij->i", normal[t], p - a[t]), np.einsum("ij,ij->i", normal[t], q - a[t])
+    height_p, height_q = np.einsum("ij,ij->i", normal[t], p - a[t]), np.einsum("ij,ij->i", normal[t], q - a[t])
     rounding = ROUNDING * np.abs(s.x).max()
-    sides = (above * below < 0) & (np.minimum(np.abs(above), np.abs(below)) > rounding)
+    sides = (height_p * height_q < 0) & (np.minimum(np.abs(height_p), np.abs(height_q)) > rounding)
     t, e, p, q = t[sides], e[sides], p[sides], q[sides]              # the ends on either side of its plane
     a, b, c = s.x[s.triangles[t]].transpose(1, 0, 2)
     length = np.linalg.norm(q - p, axis=1)

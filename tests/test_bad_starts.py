@@ -84,7 +84,7 @@ def test_a_bad_start_is_one_error_line_naming_the_bodies(scene_file, case):
     text, words = BAD_STARTS[case]
     code, out, err = run("simulate", scene_file(text), "--steps", "1")
     assert code == 2
-    line = final_error_line(err, "error: bad.toml: ", *words)
+    final_error_line(err, "error: bad.toml: ", *words)
     assert "scene" not in out                       # no summary: nothing ran
 
 
