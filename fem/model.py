@@ -221,6 +221,14 @@ class Model:
         Below it a gradient is round-off. Returns (bodies,) float64."""
         return np.array([(relative * dt * b.material.E * b.size ** 2) ** 2 for b in self.bodies])
 
+    def body_quiet(self, relative, dt):
+        """Per body, the energy round-off of `relative` gives it at rest (J): a strain of
+        `relative` everywhere, E V relative^2, and a motion of `relative` of its size L in a step,
+        m (relative L / dt)^2. A body at rest with no gravity has terms of size 0, and its energy
+        wanders by 1e-28 J (float64) from one step to the next: that is no rise."""
+        return np.array([b.material.E * b.rest_volume * relative ** 2 + b.mass * (relative * b.size / dt) ** 2
+                         for b in self.bodies])
+
     def body_speed_floor(self, relative, dt):
         """Per body, m (relative L / dt)^2 (J): twice the kinetic energy of the body moving
         `relative` of its size L in a step. Below it a velocity change is round-off."""

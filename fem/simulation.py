@@ -23,6 +23,7 @@ from fem.contact_start import check_start
 from fem.errors import FemError
 from fem.scene import METHODS, Material, check_precision, select_vertices
 from fem.implicit.effects import FRICTION_SPEED
+from fem.implicit.integrators import penalty_note
 from fem.implicit.potential import ROUNDOFF
 from fem.runtime import epsilon
 from fem.implicit.solver import StepInfo
@@ -93,6 +94,10 @@ class Simulation:
         arrays = model_arrays(scene)
         bodies, X, T, mass, free = arrays
         check_start(scene, start_state(scene, bodies, X, mass, free)[0], bodies, T)
+        if scene.effects.ground is not None or scene.effects.contact is not None:
+            note = penalty_note(settings, scene.path or scene.name)   # what the trapezoidal rule becomes there
+            if note:
+                print(note, file=sys.stderr)
         parts = pool.borrow(self, arrays, scene.effects, settings)   # fields, kernels compiled
         self.model, self.solver, self.measure = parts.model, parts.solver, parts.measure
         self.state, self.spare = parts.states

@@ -75,6 +75,13 @@ def test_a_state_changed_behind_the_steps_back_is_measured_again(f64):
     assert sim.stats()["kinetic_energy"] > 0.1 * stretched
 
 
+def hold_momentum(p, x, v, h):
+    """The inertia target x^, v^ that makes the iterate x, v the exact answer for the momentum
+    (`restore_momentum` then leaves it as it is): v^ = v, x^ = x - h v."""
+    p.v0.from_numpy(v)
+    p.x0.from_numpy(x - h * v)
+
+
 def limited(rise_share):
     """A free box spinning at 3 rad/s about y and vibrating (x, v at the step's end), its total
     energy BEFORE the step set below its energy AFTER by rise_share of its vibration's kinetic
@@ -100,9 +107,10 @@ def limited(rise_share):
     pad = lambda a: np.vstack([a, np.zeros((cap - n, 3))])        # noqa: E731
     p.x.from_numpy(pad(x))
     p.v.from_numpy(pad(v))
+    hold_momentum(p, pad(x), pad(v), 0.02)
     guard.body_total[0, 0] = before
     guard.body_lowest[0] = before                                 # the lowest it has had: BEFORE
-    guard.after_step(p.v0, p.x0, sim.state.x, sim.state.v, p.x, p.v, 0.02, 0.02, False, True, p.v0, False, 0)
+    guard.after_step(sim.state, 0.02, 0.02, True, 0, 0)
     limited_v = p.v.to_numpy()[:n].astype(np.float64)
     sim.set_state(x, limited_v)               # what the limit left: the energy BEFORE (+ 15 eps), the same momentum
     assert sim.stats()["total_energy"] == pytest.approx(before, rel=1e-12)
@@ -144,9 +152,9 @@ def test_a_rise_nothing_can_pay_for_takes_a_rigid_step_and_the_body_moves_on(f64
     pad = lambda a: np.vstack([a, np.zeros((cap - n, 3))])        # noqa: E731
     p.x.from_numpy(pad(x))
     p.v.from_numpy(pad(v_end))
+    hold_momentum(p, pad(x), pad(v_end), dt)
     guard.body_energy(sim.state.x, sim.state.v, 0, 1)             # BEFORE: the start's energy and L
-    _, trimmed, rigid, _ = guard.after_step(p.v0, p.x0, sim.state.x, sim.state.v, p.x, p.v, dt, dt, False, True,
-                                         p.v0, False, 0)
+    _, trimmed, rigid, _ = guard.after_step(sim.state, dt, dt, True, 0, 0)
     assert (trimmed, rigid) == (1, 1)
     angle = 3.0 * dt
     turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
@@ -201,11 +209,11 @@ def test_a_rise_beyond_the_band_is_taken_down_to_its_middle(f64):
     for above in (0.9, 3.0):                  # AFTER this many bands above the lowest energy
         p.x.from_numpy(pad(sim.positions()))
         p.v.from_numpy(pad(v))
+        hold_momentum(p, pad(sim.positions()), pad(v), 0.02)
         guard.body_total[0, 0] = after - 0.5 * band              # BEFORE: within the band
         guard.body_lowest[0] = after - above * band
         guard.body_scale[0] = -1.0
-        _, limits, _, _ = guard.after_step(p.v0, p.x0, sim.state.x, sim.state.v, p.x, p.v, 0.02, 0.02, False, True,
-                                        p.v0, False, 0)
+        _, limits, _, _ = guard.after_step(sim.state, 0.02, 0.02, True, 0, 0)
         sim.set_state(sim.positions(), p.v.to_numpy()[:n].astype(np.float64))
         ends[above] = (limits, sim.stats()["total_energy"] - (after - above * band))
     assert ends[0.9] == (0, pytest.approx(0.9 * band, rel=1e-2))       # within the band: left alone

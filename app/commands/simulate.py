@@ -18,7 +18,7 @@ from app import outputs, profile
 from app.files import atomic_open, interrupts_deferred, refuse_overwrite
 from app.compiling import Compiling, start_key
 from app.progress import Progress
-from fem.implicit.integrators import chosen
+from fem.implicit.integrators import described
 from fem.mesh import mesh_quality
 from fem.simulation import MAX_SPLITS, SUNK
 
@@ -161,8 +161,10 @@ def preconditioner_note(sim):
 
 
 def integrator_note(sim):
-    """"trapezoidal (auto)": the integrator the steps take, and whether "auto" chose it."""
-    integrator = chosen(sim.settings.integrator, sim.solver.switches.ground)
+    """"trapezoidal (auto)": the integrator the steps take (with its rho_infinity where it has
+    numerical dissipation), and whether "auto" chose it."""
+    switches = sim.solver.switches
+    integrator = described(sim.settings, sim.solver.effects.damped, switches.ground or switches.contact)
     return integrator + (" (auto)" if sim.settings.integrator == "auto" else "")
 
 

@@ -81,7 +81,8 @@ def theta_rule(rho):
     backward Euler, which removes it at once); one resolved at frequency omega loses about
     (theta - 1/2) (omega dt)^2 of its energy a step, so rho near 1 damps only what dt cannot
     follow."""
-    return Target("trapezoidal", 1.0, 0.0, 1.0 / (1.0 + rho), rho)
+    name = "trapezoidal" if rho == 1.0 else f"trapezoidal (rho_infinity {rho:.3g})"   # what the step is
+    return Target(name, 1.0, 0.0, 1.0 / (1.0 + rho), rho)
 
 
 # The trapezoidal rule's numerical dissipation by default (`default_rho`). With Rayleigh damping D = alpha M +
@@ -112,6 +113,26 @@ TRAPEZOIDAL = theta_rule(1.0)
 TWO_STEP = ("bdf2", "trapezoidal")     # the integrators that need the last step
 
 
+def described(settings, damped, penalty):
+    """The name the steps of these settings carry (StepInfo.integrator) at settings.dt: "bdf2",
+    "trapezoidal", "trapezoidal (rho_infinity 0.9)". penalty: the scene has a ground or contact."""
+    integrator = chosen(settings.integrator, penalty)
+    if integrator != "trapezoidal":
+        return integrator
+    rho = settings.rho_infinity if settings.rho_infinity is not None else default_rho(settings.dt, damped, penalty)
+    return theta_rule(rho).name
+
+
+def penalty_note(settings, where):
+    """The one line that tells a user who asked for the trapezoidal rule in a scene with a ground
+    or contact (and no rho_infinity) what the steps take instead, and why; None otherwise."""
+    if settings.integrator != "trapezoidal" or settings.rho_infinity is not None:
+        return None
+    return (f"note: {where}: with a ground or contact the trapezoidal rule takes rho_infinity {PENALTY_RHO:g} "
+            f"(numerical dissipation, first order) so that the contact penalty does not ring; "
+            f"set solver.rho_infinity = 1 for the rule itself")
+
+
 def chosen(integrator, ground):
     """The integrator a step takes: `integrator`, or for "auto" BDF2 with a ground or contact, else trapezoidal."""
     if integrator != "auto":
@@ -126,7 +147,8 @@ class History:
     def __init__(self, model, sleep, switches):
         self.model, self.sleep = model, sleep
         self.serial_vertices = switches.serial_vertices
-        self.x_prev = self.v_prev = self.accel = None    # made on first use: backward Euler needs none
+        self.x_prev = self.v_prev = None                  # made on first use: backward Euler needs none
+        self.accel = ti.Vector.field(3, float, model.capacity.vertices)   # the step's safeguards write it
         self.forget()
 
     def forget(self):
@@ -183,9 +205,7 @@ class History:
         self.dt, self.integrator, self.version = dt, integrator, version
 
     def acceleration(self):
-        """The field of a_n (made on first use), which the step's safeguards write."""
-        if self.accel is None:
-            self.accel = ti.Vector.field(3, float, self.model.capacity.vertices)
+        """The field of a_n, which the step's safeguards write."""
         return self.accel
 
     @ti.kernel

@@ -10,6 +10,7 @@ Linear tets keep rotated_Bm = Bm, so linear and corotational tets share every ke
 Fields (m tets of the capacity):
     rotated_Bm (m, 3x3)     Bm R^T at the current iterate, 1/m
     quaternions (m, 4)      R as (x, y, z, w): the next warm start
+    start (m, 4)            R(x_n) as quaternions, kept for backward Euler's damping (`keep_start`)
     turn (m, 3)             (x, y, z) of R_n R_(n-1)^-1, the last step's turn
     twist (m,)              twist stiffness of the Newton matrix, Pa
     needs_svd (m,)          1: the tet's R comes from the SVD
@@ -60,6 +61,7 @@ class Rotations:
         self.twist = ti.field(float, m)
         self.needs_svd = ti.field(ti.i8, m)
         self.largest_turn = ti.field(float, ())
+        self.start = ti.Vector.field(4, float, m) if switches.stiffness_damping else None   # `keep_start`
         self.rotated = False                                  # some tet's R is not I
 
     def update(self, x, svd, twist, first=False, scale=0.0):
@@ -78,6 +80,11 @@ class Rotations:
         self.rotated = True
         ti.sync()
         return 1e3 * (time.perf_counter() - start), turned
+
+    def keep_start(self):
+        """start <- the rotations now (R(x_n) at a step's start): backward Euler's damping
+        measures each tet's strain rate against them (IncrementalPotential.strain_rate)."""
+        self.start.copy_from(self.quaternions)
 
     def unrotate(self):
         """Every tet back to R = I (after every body switched to linear, or to forget them)."""

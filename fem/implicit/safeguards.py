@@ -45,6 +45,8 @@ Fields (bodies of the capacity; energies summed in float64):
     body_elastic_before (bodies,)  J: its elastic energy BEFORE the step (`strained`)
     body_stiffness (bodies,)     J: sum of mu V over its tets (`strained`)
     body_moving (bodies,)        J: its kinetic energy (`rigid_motion`)
+    body_quiet (bodies,)         J: the energy round-off gives a body at rest, where the sizes of its
+                                 terms are 0 (`Model.body_quiet`): a rise below it is no failed solve
 """
 
 import taichi as ti
@@ -68,12 +70,14 @@ FOUR_I32 = ti.types.vector(4, ti.i32)
 
 @ti.data_oriented
 class Safeguards(Fallback):
-    """The step's last checks for one model: energies from `elasticity` and `effects`
-    (gravity), a sleeping body (`sleep`) left as it is."""
+    """The step's last checks for one model, on the iterate of `potential`: energies from
+    `elasticity` and `effects` (gravity), a sleeping body (`sleep`) left as it is; the
+    trapezoidal rule's a_(n+1) into `history`."""
 
-    def __init__(self, model, elasticity, effects, sleep, switches):
+    def __init__(self, model, potential, history, elasticity, effects, sleep, switches):
         nb = model.capacity.bodies
         self.model, self.elasticity, self.effects, self.sleep = model, elasticity, effects, sleep
+        self.potential, self.history = potential, history         # the iterate; a_(n+1)
         self.has_gravity = switches.gravity
         self.serial_tets, self.serial_vertices = switches.serial_tets, switches.serial_vertices
         self.body_total = ti.field(ti.f64, (2, nb))
@@ -89,7 +93,6 @@ class Safeguards(Fallback):
         self.body_lowest = ti.field(ti.f64, nb)
         self.body_scale = ti.field(ti.f64, nb)
         self.body_elastic = ti.field(ti.f64, nb)
-        self.body_shift = ti.field(ti.f64, nb)
         self.body_spin_before = ti.Vector.field(3, ti.f64, nb)
         self.body_fallback = ti.field(ti.i32, nb)
         self.body_touching = ti.field(ti.i32, nb)
@@ -101,6 +104,8 @@ class Safeguards(Fallback):
         self.body_kinetic_before = ti.field(ti.f64, nb)
         self.body_elastic_before = ti.field(ti.f64, nb)
         self.body_stiffness = ti.field(ti.f64, nb)
+        self.body_quiet = ti.field(ti.f64, nb)
+        self.body_shift = ti.field(ti.f64, nb)
         self.forget_band()
 
     def forget_band(self):
@@ -108,25 +113,27 @@ class Safeguards(Fallback):
         self.body_scale.fill(-1.0)
 
     @ti.kernel
-    def after_step(self, v0: ti.template(), x0: ti.template(), x_n: ti.template(), v_n: ti.template(),
-                   x: ti.template(), v: ti.template(), h: float, dt: float, momentum: ti.template(),
-                   energy: ti.template(), accel: ti.template(), keep: ti.template(), conserve: ti.i32) -> FOUR_I32:
-        """The step's last checks on its iterate x, v, in one launch: returns (vertices not
-        finite, bodies trimmed, bodies that took a rigid step: the same, of those the `strained`). momentum: `restore_momentum`; energy: the total energy AFTER
-        and `limit_energy` (conserve: to the energy BEFORE, both ways). keep: accel <- the step's
-        acceleration (v - v^) / h, what the forces did, before the energy projection corrects
-        anything (the trapezoidal rule's a_(n+1), fem/implicit/integrators.py). The caller
-        discards a result that is not finite, whatever these did with it."""
+    def after_step(self, start: ti.template(), h: float, dt: float, energy: ti.template(), keep: ti.i32,
+                   conserve: ti.i32) -> FOUR_I32:
+        """The step's last checks on the potential's iterate x, v, in one launch, from the step's
+        start (`start`: a State, x_n and v_n); returns (vertices not finite, bodies trimmed,
+        bodies that took a rigid step: the same, of those the `strained`). Without contact each
+        body's momentum is `restore_momentum`'s; energy (a Newton step): the total energy AFTER
+        and `limit_energy` (conserve: to the energy BEFORE, both ways). keep: the history's
+        a_(n+1) <- the step's acceleration (v - v^) / h, what the forces did, before the energy
+        projection corrects anything (the trapezoidal rule's, fem/implicit/integrators.py). The
+        caller discards a result that is not finite, whatever these did with it."""
+        x0, v0, x, v = ti.static(self.potential.x0, self.potential.v0, self.potential.x, self.potential.v)
         bad = self.check_finite(x, v)
-        self.find_contacts(x_n, x)
-        if ti.static(momentum):
+        self.find_contacts(start.x, x)
+        if ti.static(not self.effects.has_contact):       # contact's pushes are no internal forces
             self.restore_momentum(v0, x0, x, v, h)
             if ti.static(self.effects.has_ground):     # a restored body moved: it may end in the ground now
-                self.find_contacts(x_n, x)
-        if ti.static(keep):
-            ti.loop_config(serialize=self.serial_vertices)
-            for i in range(self.model.vertex_count[None]):
-                accel[i] = (v[i] - v0[i]) / h
+                self.find_contacts(start.x, x)
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None]):
+            if keep:
+                self.history.accel[i] = (v[i] - v0[i]) / h
         counts = ti.Vector([0, 0], ti.i32)
         strained = 0
         if ti.static(energy):
@@ -134,7 +141,7 @@ class Safeguards(Fallback):
             counts = self.limit_energy(x, v, dt, conserve)
             if counts[1] > 0:
                 strained = self.strained()
-                self.fall_back(x_n, v_n, x, v, dt)
+                self.fall_back(start.x, start.v, x, v, dt)
         return ti.Vector([bad, counts[0], counts[1], strained], ti.i32)
 
     @ti.func
@@ -303,8 +310,9 @@ class Safeguards(Fallback):
         1 - lam with w (a converged BDF2 step of a spinning box, whose deformation holds 1e-3 of
         its energy, rose by more than that); only a rise beyond that is a failed solve and
         `fall_back`. A uniform shift keeps strains: the rotations and elastic energies at x stand.
-        Returns (bodies trimmed, bodies to `fall_back`): the same count, the projection itself is
-        part of the scheme and is not counted."""
+        Returns (bodies trimmed, bodies to `fall_back`): the projection itself is part of the
+        scheme and is not counted, nor is a body whose rise is round-off at rest (`body_quiet`),
+        which takes the rigid step, and so stays still, with no failed solve to count."""
         self.rigid_motion(x, v)
         trimmed, falls = 0, 0
         if ti.static(self.effects.has_contact):                # one island: body 0's entries hold the sums
@@ -343,8 +351,11 @@ class Safeguards(Fallback):
             self.body_fallback[b] = 0
             if excess > FAILED * (K + spin + G) and excess > allowance:
                 self.body_fallback[b] = 1
-                trimmed += 1
                 falls += 1
+                # a body at rest (no gravity: terms of size 0) whose energy rose by round-off
+                # takes the rigid step too, which keeps it still, but no solve failed there
+                if excess > allowance + self.body_quiet[b]:
+                    trimmed += 1
                 self.body_speed[b] = self.slowed(b, energy)
             elif K + spin + G > 0.0 and ti.abs(excess) > allowance:   # round-off is not chased
                 # the smaller root, in the form that does not cancel

@@ -36,7 +36,11 @@ class StepInfo:
     finite: every new position and velocity is finite (else the caller keeps the old state).
     converged: every body's gradient met the tolerance (single step: the linear solve did);
         a Newton step that stopped for another reason (velocities settled, max_newton) did not.
-    residual: sqrt(sum over bodies of (|grad_b E| / s_b)^2), dimensionless; <= tolerance when converged.
+    residual: max over bodies of |grad_b E| / s_b at the answer, dimensionless (s_b: the size of the
+        body's terms): <= tolerance when converged, unless the step stopped at round-off
+        (`at_floor`). The one-solve step: its linear solve's residual.
+    at_floor: converged because every gradient the tolerance did not meet is below its body's
+        round-off floor (float32, near-incompressible or stiff bodies): residual > tolerance.
     newton_iters: Newton iterations (1 for a single step).
     solver_iters: CG or Jacobi iterations summed over the Newton iterations.
     line_search_steps: step halvings summed over the Newton iterations.
@@ -61,6 +65,7 @@ class StepInfo:
     solve_ms: float
     integrator: str = "backward-euler"    # the step's own: a two-step integrator restarts with backward Euler
     retried: int = 0
+    at_floor: bool = False
 
 
 @dataclass(frozen=True)
@@ -104,9 +109,11 @@ class ImplicitSolver:
         self.newton = Newton(model, self.potential, self.linear, self.rotations, self.effects, self.sleep, switches)
         if switches.contact:                                  # bodies that contact couples search together
             self.newton.islands = Islands(model, self.newton, self.effects.contact)
-        self.safeguards = Safeguards(model, self.elasticity, self.effects, self.sleep, switches)
         self.history = History(model, self.sleep, switches)
+        self.safeguards = Safeguards(model, self.potential, self.history, self.elasticity, self.effects, self.sleep,
+                                     switches)
         self.x_end = ti.Vector.field(3, float, model.capacity.vertices)   # m: where the last step ended
+        self.rates_from_start = 0                             # what potential.rate_from_start holds
 
     @property
     def parts(self):
@@ -161,6 +168,7 @@ class ImplicitSolver:
             rotation_ms, turned = self.update_rotations(p.x, corotational, first=True,    # R(x_n)
                                                         scale=scale if self.turn_known else 0.0)
         self.turn_known = not ended_here                                # the turn of this step, recorded
+        self.measure_rates_from_start(integrator == "backward-euler" and corotational)
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
         if self.history.fresh:                                          # a_n from the forces at x_n, v_n
@@ -193,11 +201,9 @@ class ImplicitSolver:
 
         # the safeguards: finite, momentum (of bodies no ground pushes), energy: the conserving scheme
         # (the trapezoidal rule, undamped, off the ground) is projected onto the energy it began with
-        trapezoidal = integrator == "trapezoidal"                   # it keeps the step's acceleration
-        accel = self.history.acceleration() if target.one_step else p.v0
         conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
-        bad, trimmed, rigid, strained = self.safeguards.after_step(p.v0, p.x0, state_in.x, state_in.v, p.x, p.v, h, dt, not contact,
-                                                         newton, accel, target.one_step, conserve)
+        bad, trimmed, rigid, strained = self.safeguards.after_step(state_in, h, dt, newton, int(target.one_step),
+                                                                   conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
         if retry and strained > 0 and newton and not contact and integrator != "backward-euler":
             self.end_known = None                   # start again from x_n: its rotations anew
@@ -219,14 +225,29 @@ class ImplicitSolver:
         self.last_dt = dt
         ti.sync()
 
-        residual = tolerance * math.sqrt(max(solved.rho, 0.0))
+        converged = bool(solved.rho <= 1.0)
+        if newton or ((ground or contact) and not model.any_naive):   # the gradient at the answer, no floor
+            residual = math.sqrt(max(p.relative[None], 0.0))
+        else:
+            residual = tolerance * math.sqrt(max(solved.rho, 0.0))
         rotation_ms += solved.rotation_ms
         wall_ms = 1e3 * (time.perf_counter() - start)
-        return StepInfo(finite=finite, converged=bool(solved.rho <= 1.0), integrator=target.name,
+        return StepInfo(finite=finite, converged=converged, integrator=target.name,
+                        at_floor=converged and residual > tolerance,
                         residual=residual if math.isfinite(residual) else None,
                         newton_iters=max(solved.newton_iters, 1), solver_iters=solved.solver_iters,
                         line_search_steps=solved.halvings, energy_limited=trimmed, rotation_ms=rotation_ms,
                         solve_ms=wall_ms - rotation_ms)
+
+    def measure_rates_from_start(self, chords):
+        """With stiffness damping, a step whose velocities are chords (backward Euler's, of a
+        corotational body) measures strain rates against the rotations R(x_n) it starts from
+        (IncrementalPotential.turn_rate); one launch where that changes, one to keep R(x_n)."""
+        on = int(chords and self.switches.stiffness_damping)
+        if on:
+            self.rotations.keep_start()
+        if on != self.rates_from_start:
+            self.potential.rate_from_start[None] = self.rates_from_start = on
 
     def start_acceleration(self, x_n, h, dt):
         """The trapezoidal rule's a_n where the history gives none: M a_n = f(x_n) - D v_n + M g
@@ -261,7 +282,7 @@ class ImplicitSolver:
         # the per-body inputs of the kernels, kept here and written together (write_bodies)
         self.pinned_np = np.array([(model.free_np[b.vertices] == 0).any() for b in model.bodies], np.int32)
         self.awake_np = np.ones(len(model.bodies), np.int32)
-        self.floor_np = self.speed_floor_np = np.zeros(len(model.bodies))      # set by refresh
+        self.floor_np = self.speed_floor_np = self.quiet_np = np.zeros(len(model.bodies))   # set by refresh
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioning.load()
         self.linear.load()
@@ -304,6 +325,7 @@ class ImplicitSolver:
             self.floor_np = self.model.body_floor(GRADIENT_ROUNDOFF[precision()] * epsilon(), h)
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
+            self.quiet_np = self.model.body_quiet(ROUNDOFF * epsilon(), dt)
             self.write_bodies()
             if not self.model.any_corotational and self.rotations.rotated:
                 self.rotations.unrotate()                     # every body switched to linear
@@ -330,15 +352,16 @@ class ImplicitSolver:
 
     def write_bodies(self):
         """The per-body inputs (pinned, awake, round-off floors) into their parts' fields, in one kernel."""
-        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np)
+        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np, self.quiet_np)
 
     @ti.kernel
     def _write_bodies(self, pinned: ti.types.ndarray(), awake: ti.types.ndarray(),
-                      floor: ti.types.ndarray(), speed_floor: ti.types.ndarray()):
+                      floor: ti.types.ndarray(), speed_floor: ti.types.ndarray(), quiet: ti.types.ndarray()):
         ti.loop_config(serialize=True)
         for b in range(pinned.shape[0]):
             self.safeguards.body_pinned[b], self.sleep.awake[b] = pinned[b], awake[b]
             self.potential.body_floor[b], self.newton.body_speed_floor[b] = floor[b], speed_floor[b]
+            self.safeguards.body_quiet[b] = quiet[b]
 
     @ti.kernel
     def finish(self, v_n: ti.template(), x: ti.template(), v: ti.template(), good: ti.i32, fit: ti.i32):
