@@ -2,8 +2,8 @@
 Simulation.contact_points with magenta dots where the frame's camera sees them.
 
 The exports run in this process through main.main, so that the Simulation the test steps beside
-them reuses their compiled kernels; a small box starts resting 5 mm above another (closer than the
-contact distance, 1 cm), so the first step already has contact points.
+them reuses their compiled kernels; a small box starts 15 mm above another (a start closer than the
+contact distance, 1 cm, is refused) moving down at 0.6 m/s, so the first step already has contact points.
 """
 
 import contextlib
@@ -46,7 +46,10 @@ position = [0.0, 0.2, 0.0]
 name = "upper"
 mesh = { generator = "box", size = [0.5, 0.5, 0.5], cells = [1, 1, 1] }
 material = { E = 1e5, nu = 0.3, density = 1000.0 }
-position = [0.1, 0.655, 0.05]
+position = [0.1, 0.665, 0.05]
+[[initial]]
+body = "upper"
+velocity = [0.0, -0.6, 0.0]
 """
 
 

@@ -427,8 +427,8 @@ def test_click_pushes_the_body_and_c_flips_the_method(display, tmp_path):
     assert [e["shown"] for _, e in events if e["type"] == "contact_points"] == [True]
 
 
-# A box resting on a fixed block, 5 mm above it at the start: inside the contact distance (1 cm)
-# from the first step on, and it stays there.
+# A box 15 mm above a fixed block, moving down at 0.6 m/s (a start closer than the contact distance,
+# 1 cm, is refused): inside the contact distance from the first step on, and it stays there.
 BOX_ON_A_BLOCK = """
 name = "box on a block"
 [solver]
@@ -450,7 +450,10 @@ position = [0.0, 0.2, 0.0]
 name = "box"
 mesh = { generator = "box", size = [0.5, 0.5, 0.5], cells = [2, 2, 2] }
 material = { E = 1e5, nu = 0.3, density = 1000.0 }
-position = [0.0, 0.655, 0.0]
+position = [0.0, 0.665, 0.0]
+[[initial]]
+body = "box"
+velocity = [0.0, -0.6, 0.0]
 """
 
 
