@@ -153,7 +153,7 @@ def test_the_contact_gradient_is_the_energy_s_and_its_hessian_is_symmetric_and_p
         assert slope == pytest.approx(-(force * u).sum(), rel=1e-6, abs=1e-9 * E)
     # the numbers themselves, from numpy: IPC's barrier E = sum -k m_p (d_hat - d)^2 ln(d / d_hat) over
     # pairs closer than d_hat (times the mollifier on edges), and Gauss-Newton's Hessian k m_p b''(d) g g^T
-    k = sim.solver.effects.contact_stiffness[None]
+    k = contact.stiffness[None]
     d_hat = contact.distance[None]
     pairs = contact.pairs.to_numpy()[:contact.pair_count[None]]
     triangles, edges = contact.triangles.to_numpy(), contact.edges.to_numpy()

@@ -20,9 +20,12 @@ nothing). Its Hessian is Gauss-Newton's, k m_p b''(d) n n^T on the pair's 12 dof
 positions, not on which pairs were found, as long as the broad phase finds every pair closer
 than d_hat.
 
-Friction is lagged as the ground's: the pairs touching at the step's start keep their weights
-w, normal n and normal force lambda = -k m_p b'(d) for the whole step, and add
-h mu lambda f0(|u_T|), u_T the pair's relative tangential velocity.
+Friction is lagged as the ground's (fem/implicit/friction.py): the pairs touching at the step's
+start keep their weights, normal and normal force lambda = -k m_p b'(d) for the whole step.
+
+Newton's stopping test cannot ask more of the gradient than its round-off: a pair's push changes
+by h k m_p b''(d) per metre of d, and d is known to eps |x| (f32: 3e-8 m at 0.4 m from the
+origin), 2 to 7 times the tolerance of a box resting on another in f32 (`body_noise`).
 
 No vertex passes through a triangle: each line search starts with a step bound (`prepare_search`,
 additive CCD, Li et al. 2021, `time_of_impact`): a pair whose four points move by at most D
@@ -48,11 +51,12 @@ Fields (n vertices, t triangles of the capacity, P pairs):
                            (-e - 1, f) for edges e < f (`corners`)
     pair_weights (P, 4)    c at the last evaluation (`points_gap`)
     pair_matrix (P, 3x3)   h^2 k m_p b"(d) n n^T while touching, else 0 (kg/s)
-    sticks (P, 2)          the step's friction pairs, lagged, as pairs
-    stick_weights, stick_normal, stick_force (lambda, N), stick_matrix (friction's Hessian, kg/s)
+    sticking               the step's friction pairs (PairFriction, fem/implicit/friction.py)
     force (n, 3)           -grad of the contact and friction terms at the last evaluation, N s
     product (n, 3)         (their Hessian) u of the last product pass, N s
     block (n, 3x3)         their Hessian's diagonal blocks, for the preconditioner (kg/s)
+    body_noise (bodies,)   the round-off of |grad_b|^2 from the pairs' distances at the last
+                           evaluation, sum (NOISE eps h k m_p b''(d) sum_a |c_a| |x_a|)^2 c_a^2, (N s)^2
     energy (n,)            each vertex's share of the contact energy (half of each pair to either
                            vertex, half to its triangle's), J, float64: the safeguards' per-body sums
 """
@@ -61,12 +65,16 @@ import numpy as np
 import taichi as ti
 
 from fem.implicit.broad_phase import BroadPhase
+from fem.implicit.friction import PairFriction
 from fem.implicit.pair_geometry import TOUCHING, barrier, closing_bound, points_gap
+from fem.runtime import epsilon
 
 SAFETY = 0.9                 # a line search step closes at most this share of any pair's gap
 PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
 MOLLIFIER = 1e-3             # edges closer to parallel than sin^2 = this fade out (`Contact.mollifier`)
 ADVANCES = 32                # additive CCD's conservative advances per pair and line search
+PAIR_STIFFNESS = 30.0        # k dt^2 of the pairs' barrier, in units of a vertex's inertia over one step
+NOISE = 2.0                  # a distance's round-off, in units of eps sum_a |c_a| |x_a|
 
 
 @ti.data_oriented
@@ -87,6 +95,7 @@ class Contact:
         self.triangle_edges = ti.Vector.field(3, ti.i32, t)
         self.edge_owner = ti.field(ti.i32, 3 * t // 2 + 3)
         self.distance = ti.field(float, ())
+        self.stiffness = ti.field(float, ())
         self.friction = ti.field(float, ())
         self.reach = ti.field(float, ())
         self.pairs = ti.Vector.field(2, ti.i32, self.pair_capacity)
@@ -96,17 +105,14 @@ class Contact:
         self.island = self.broad.island
         self.pair_weights = ti.Vector.field(4, float, self.pair_capacity)
         self.pair_matrix = ti.Matrix.field(3, 3, float, self.pair_capacity)
-        self.sticks = ti.Vector.field(2, ti.i32, self.pair_capacity)
-        self.stick_count = ti.field(ti.i32, ())
-        self.stick_weights = ti.Vector.field(4, float, self.pair_capacity)
-        self.stick_normal = ti.Vector.field(3, float, self.pair_capacity)
-        self.stick_force = ti.field(float, self.pair_capacity)
-        self.stick_matrix = ti.Matrix.field(3, 3, float, self.pair_capacity)
+        self.sticking = PairFriction(self, self.pair_capacity)
+        self.body_noise = ti.field(ti.f64, model.capacity.bodies)
         self.force = ti.Vector.field(3, float, n)
         self.product = ti.Vector.field(3, float, n)
         self.block = ti.Matrix.field(3, 3, float, n)
         self.energy = ti.field(ti.f64, n)
         self.step_limit = ti.field(float, ())
+        self.body_limit = ti.field(float, model.capacity.bodies)
         self.largest_move = ti.field(float, ())
         self.smallest = ti.field(float, ())
         self.touching = ti.field(ti.i32, ())
@@ -129,7 +135,11 @@ class Contact:
         edges = np.linalg.norm(rest[triangles] - rest[np.roll(triangles, 1, axis=1)], axis=2)
         self.reach[None] = max(float(edges.mean()), 4.0 * contact.distance)
         self.distance[None], self.friction[None] = contact.distance, contact.friction
-        self.stick_count[None] = 0
+        self.sticking.stick_count[None] = 0
+
+    def set_dt(self, dt):
+        """The barrier's stiffness k = PAIR_STIFFNESS / dt^2 follows the scene's dt, as the ground's."""
+        self.stiffness[None] = PAIR_STIFFNESS / (dt * dt)
 
     # ------------------------------------------------------------ one pair
 
@@ -194,17 +204,21 @@ class Contact:
     @ti.func
     def evaluate(self, x: ti.template(), v: ti.template(), h, body_E: ti.template()):
         """body_E += the contact and friction energies (J, float64); force <- their -grad E
-        (N s); pair_matrix, stick_matrix and block <- their Hessian (kg/s), at (x, v)."""
+        (N s); pair_matrix, stick_matrix and block <- their Hessian (kg/s); body_noise <- the
+        round-off of each body's gradient, at (x, v)."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             self.force[i] = ti.Vector.zero(float, 3)
             self.block[i] = ti.Matrix.zero(float, 3, 3)
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_noise[b] = 0.0
         d_hat = self.distance[None]
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids, edge = self.vertices(q)
             d, n, c = self.gap(x, ids, edge)
-            km = self.effects.contact_stiffness[None] * self.pair_mass(ids, edge)
+            km = self.stiffness[None] * self.pair_mass(ids, edge)
             A = ti.Matrix.zero(float, 3, 3)
             if d < d_hat:
                 phi, push, curve = barrier(d, d_hat)
@@ -219,31 +233,15 @@ class Contact:
                     ti.atomic_add(self.force[ids[2]], f1)
                     ti.atomic_sub(self.force[ids[3]], f1)
                 A = h * h * km * mol * curve * n.outer_product(n)
+                size = 0.0                                     # sum_a |c_a| |x_a|: d's round-off / eps
                 for a in ti.static(range(4)):
                     self.block[ids[a]] += c[a] * c[a] * A
+                    size += ti.abs(c[a]) * x[ids[a]].norm()
+                noise = ti.cast(ti.static(NOISE * epsilon()) * h * km * mol * curve * size, ti.f64) ** 2
+                for a in ti.static(range(4)):
+                    self.body_noise[self.model.vertex_body[ids[a]]] += noise * ti.cast(c[a] * c[a], ti.f64)
             self.pair_weights[q], self.pair_matrix[q] = c, A
-        mu = self.friction[None]
-        ti.loop_config(serialize=self.serial_vertices)
-        for q in range(self.stick_count[None] * (mu > 0)):
-            ids = self.stick_vertices(q)[0]
-            c, n = self.stick_weights[q], self.stick_normal[q]
-            u = c[0] * v[ids[0]] + c[1] * v[ids[1]] + c[2] * v[ids[2]] + c[3] * v[ids[3]]
-            u -= u.dot(n) * n                                  # tangential relative velocity
-            s = u.norm()
-            f0, across, along = self.effects.friction_model(s)
-            lam = h * mu * self.stick_force[q]
-            body_E[self.model.vertex_body[ids[0]]] += ti.cast(lam, ti.f64) * ti.cast(f0, ti.f64)
-            g = lam * across
-            t = u / ti.max(s, 1e-30)
-            A = g * (ti.Matrix.identity(float, 3) - n.outer_product(n)) + lam * (along - across) * t.outer_product(t)
-            self.scatter(self.force, ids, c, -g * u)
-            for a in ti.static(range(4)):
-                self.block[ids[a]] += c[a] * c[a] * A
-            self.stick_matrix[q] = A
-
-    @ti.func
-    def stick_vertices(self, q):
-        return self.corners(self.sticks[q])
+        self.sticking.evaluate(v, h, body_E, self.force, self.block)
 
     @ti.func
     def product_pass(self, z: ti.template(), p: ti.template(), beta, on):
@@ -259,13 +257,7 @@ class Contact:
             for a in ti.static(range(4)):
                 s += c[a] * (z[ids[a]] + beta * p[ids[a]])
             self.scatter(self.product, ids, c, self.pair_matrix[q] @ s)
-        ti.loop_config(serialize=self.serial_vertices)
-        for q in range(self.stick_count[None] * on * (self.friction[None] > 0)):
-            ids, c = self.stick_vertices(q)[0], self.stick_weights[q]
-            s = ti.Vector.zero(float, 3)
-            for a in ti.static(range(4)):
-                s += c[a] * (z[ids[a]] + beta * p[ids[a]])
-            self.scatter(self.product, ids, c, self.stick_matrix[q] @ s)
+        self.sticking.product(z, p, beta, on, self.product)
 
     # ------------------------------------------------------------ the step's passes
 
@@ -279,17 +271,14 @@ class Contact:
         """At the step's first iterate x (= x_n): the lagged friction pairs (the touching ones,
         with their normal force), then E's terms and Hessian there (for the preconditioner)."""
         d_hat = self.distance[None]
-        self.stick_count[None] = 0
+        self.sticking.clear()
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids, edge = self.vertices(q)
             d, n, c = self.gap(x, ids, edge)
             if d < d_hat:
-                k = ti.atomic_add(self.stick_count[None], 1)
-                self.sticks[k] = self.pairs[q]
-                self.stick_weights[k], self.stick_normal[k] = c, n
-                self.stick_force[k] = self.effects.contact_stiffness[None] * self.pair_mass(ids, edge) * barrier(d, d_hat)[1] \
-                    * self.mollifier(x, ids, edge)[0]
+                km = self.stiffness[None] * self.pair_mass(ids, edge)
+                self.sticking.lag(self.pairs[q], c, n, km * barrier(d, d_hat)[1] * self.mollifier(x, ids, edge)[0])
         self.evaluate(x, v, h, body_E)            # (body_E is the energy pass's to fill: it starts it anew)
 
     @ti.kernel
@@ -336,7 +325,9 @@ class Contact:
     def prepare_search(self, x: ti.template(), d: ti.template(), h: float) -> float:
         """Before a line search from the accepted iterate x along d: the pairs it can meet (within
         d_hat + 2 D, D = h max_i |d_i|, capped at `reach`) and the largest step a <= 1 that keeps
-        every pair at least (1 - SAFETY) of its gap apart; returns that step."""
+        every pair at least (1 - SAFETY) of its gap apart; returns that step, and body_limit <- the
+        largest for each body's own pairs (an island of bodies searches from the least of its own:
+        one pair closing fast in a pile cut every other box's step short)."""
         self.largest_move[None] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.surface_count[None]):
@@ -347,10 +338,16 @@ class Contact:
         self.broad.find_pairs(x, self.distance[None] + 2.0 * limit * D)
         self.broad.find_islands()
         self.step_limit[None] = limit
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_limit[b] = limit
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids, edge = self.vertices(q)
-            ti.atomic_min(self.step_limit[None], self.time_of_impact(x, d, h, ids, edge, limit))
+            a = self.time_of_impact(x, d, h, ids, edge, limit)
+            ti.atomic_min(self.step_limit[None], a)
+            for k in ti.static(range(4)):
+                ti.atomic_min(self.body_limit[self.model.vertex_body[ids[k]]], a)
         return self.step_limit[None]
 
     @ti.func
@@ -414,7 +411,7 @@ class Contact:
             ids, edge = self.vertices(q)
             d, n, c = self.gap(x, ids, edge)
             if d < d_hat:
-                km = ti.cast(self.effects.contact_stiffness[None] * self.pair_mass(ids, edge), ti.f64)
+                km = ti.cast(self.stiffness[None] * self.pair_mass(ids, edge), ti.f64)
                 e = 0.5 * km * barrier(d, d_hat)[0] * ti.cast(self.mollifier(x, ids, edge)[0], ti.f64)
                 for a in ti.static(range(4)):                  # half to each side, by its weights
                     self.energy[ids[a]] += ti.abs(ti.cast(c[a], ti.f64)) * e

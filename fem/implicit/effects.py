@@ -108,6 +108,8 @@ class Effects:
         """The contact's stiffness follows the scene's dt (not an integrator's own h), so that
         the contact energy of a state does not change from one step to the next."""
         self.contact_stiffness[None] = CONTACT_STIFFNESS / (dt * dt)
+        if self.has_contact:
+            self.contact.set_dt(dt)
 
     @ti.func
     def filtered(self, i, a):
@@ -115,6 +117,15 @@ class Effects:
         if ti.static(self.pins):
             a *= self.model.free[i]
         return a * self.sleep.awake[self.model.vertex_body[i]]    # a sleeping body is held like a pinned one
+
+    @ti.func
+    def round_off(self, b):
+        """What body b's |grad E|^2 cannot tell from 0 beyond its own floor: the contact pairs' round-off
+        (Contact.body_noise), (N s)^2."""
+        out = ti.cast(0.0, ti.f64)
+        if ti.static(self.has_contact):
+            out = self.contact.body_noise[b]
+        return out
 
     @ti.func
     def gravity_vector(self):

@@ -7,6 +7,8 @@ different islands still search alone.
 
 Fields (bodies of the capacity):
     island_sums (bodies, 4)   float64 sums over an island's bodies (indexed by its lowest id)
+    island_limit (bodies,)    the largest step of an island's line search: the least of its bodies'
+                              (Contact.body_limit), indexed by its lowest id
 """
 
 import taichi as ti
@@ -21,11 +23,12 @@ class Islands:
     def __init__(self, model, newton, contact):
         self.model, self.newton, self.contact = model, newton, contact
         self.island_sums = ti.Vector.field(4, ti.f64, model.capacity.bodies)
+        self.island_limit = ti.field(float, model.capacity.bodies)
 
     @ti.func
-    def search_together(self, tolerance, largest):
+    def search_together(self, tolerance):
         """Newton.start_search where contact couples the bodies: the bodies of one island
-        (BroadPhase.find_islands) search together, from a = largest, where their summed slope
+        (BroadPhase.find_islands) search together, from the island's own step bound, where their summed slope
         descends by more than the round-off of their summed E or one of them has not converged.
         Returns how many bodies search."""
         island, gradient = ti.static(self.contact.island, self.newton.potential.body_gradient)
@@ -33,17 +36,19 @@ class Islands:
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.island_sums[b] = ti.Vector.zero(ti.f64, 4)
+            self.island_limit[b] = 1.0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):  # slope, resolution, unconverged bodies
-            unconverged = gradient[b] > tolerance * tolerance * scale[b] + floor[b]
+            unconverged = gradient[b] > tolerance * tolerance * scale[b] + floor[b] + self.newton.effects.round_off(b)
             self.island_sums[island[b]] += ti.Vector([self.newton.body_slope[b], self.newton.body_resolution[b],
                                                       ti.cast(unconverged, ti.f64), 0.0])
+            ti.atomic_min(self.island_limit[island[b]], self.contact.body_limit[b])
         count = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             s = self.island_sums[island[b]]
             self.newton.searching[b] = int(s[0] < 0 and (-s[0] > s[1] or s[2] > 0))
-            self.newton.body_step[b] = self.newton.searching[b] * largest
+            self.newton.body_step[b] = self.newton.searching[b] * self.island_limit[island[b]]
             count += self.newton.searching[b]
         return count
 

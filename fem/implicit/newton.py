@@ -312,13 +312,13 @@ class Newton:
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             unconverged = self.potential.body_gradient[b] > (tolerance * tolerance * self.potential.body_scale[b]
-                                                             + self.potential.body_floor[b])
+                                                             + self.potential.body_floor[b] + self.effects.round_off(b))
             self.searching[b] = int(self.body_slope[b] < 0 and (-self.body_slope[b] > self.body_resolution[b]
                                                                or unconverged))
             self.body_step[b] = self.searching[b] * largest
             count += self.searching[b]
         if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
-            count = self.islands.search_together(tolerance, largest)
+            count = self.islands.search_together(tolerance)
         self.step_along(h, 1, int(count > 0))                 # the first trial
         return count
 

@@ -1,0 +1,61 @@
+"""Newton converges on contact (fem/implicit/newton.py, contact.py): a box resting on a slab, a box
+sliding on it and a stack at rest meet the gradient's tolerance on their steps, in float32 too,
+where a pair's distance is known only to eps |x| and its push to h k m_p b''(d) eps |x| (the
+stopping test's round-off floor, Contact.body_noise)."""
+
+import numpy as np
+import pytest
+
+import fem
+from fem.scene import Body, ContactEffect, Effects, Material, Scene, SolverSettings
+from scenes.hard_cases import cube
+
+
+def box(size, position, name, cells=1):
+    mesh = cube(cells=cells, size=size)
+    return Body(name, type(mesh)(mesh.vertices + np.asarray(position), mesh.tets, mesh.source),
+                Material(1e5, 0.3, 1000.0), "corotational")
+
+
+def scene(bodies, friction=0.3):
+    return Scene("contact", bodies, solver=SolverSettings(dt=0.02),
+                 effects=Effects(gravity=(0.0, -9.81, 0.0), ground=0.0, friction=0.5,
+                                 contact=ContactEffect(0.01, friction)))
+
+
+def on_slab():
+    """A 0.3 m box 12 mm above a 1 m slab on the ground."""
+    return [box((1.0, 0.2, 1.0), (0.0, 0.1, 0.0), "slab", cells=2), box((0.3, 0.3, 0.3), (0.0, 0.362, 0.0), "box")]
+
+
+def converged_share(sim, steps):
+    rows = [sim.step() for _ in range(steps)]
+    assert all(row["finite"] and row["interpenetrating"] == 0 for row in rows)
+    return np.mean([row["converged"] for row in rows])
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+@pytest.mark.parametrize("friction", [0.0, 0.3])
+def test_a_box_resting_on_a_slab_converges(precision, friction):
+    fem.init("cpu", precision)
+    assert converged_share(fem.Simulation(scene(on_slab(), friction)), 60) >= 0.95
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_a_box_sliding_on_a_slab_converges(precision):
+    """Settled, then pushed to 1 m/s: it slides, stops (friction 0.3) and rests."""
+    fem.init("cpu", precision)
+    sim = fem.Simulation(scene(on_slab()))
+    share = converged_share(sim, 15)
+    v = sim.velocities()
+    v[sim.model.bodies[1].vertices, 0] += 1.0
+    sim.set_state(sim.positions(), v)
+    assert min(share, converged_share(sim, 35)) >= 0.95
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_every_step_of_a_stack_at_rest_converges(precision):
+    """Three 0.3 m boxes stacked on the ground, 12 mm apart to start: they settle and rest."""
+    fem.init("cpu", precision)
+    bodies = [box((0.3, 0.3, 0.3), (0.0, 0.15 + 0.312 * k, 0.0), f"box{k}") for k in range(3)]
+    assert converged_share(fem.Simulation(scene(bodies)), 60) == 1.0
