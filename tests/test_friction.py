@@ -73,7 +73,7 @@ def test_a_block_on_a_tilted_support_holds_below_mu_and_slides_above(f64, suppor
     theta = math.atan(tan_theta)
     dt = 0.01
     sim = block_scene(support, dt, gravity=(G * math.sin(theta), -G * math.cos(theta), 0.0))
-    for _ in range(20):                                      # it lands and settles
+    for _ in range(40):                                      # it lands (sliding as it falls) and settles
         sim.step()
     x0, v0 = mean_x(sim)
     for _ in range(60):
