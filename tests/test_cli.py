@@ -163,7 +163,7 @@ def test_a_closed_stdout_drops_what_was_meant_for_it(tmp_path):
     assert len((tmp_path / "s.jsonl").read_text().splitlines()) == 2
 
 
-@pytest.mark.parametrize("argv, says", [((), "dt 0.02 s, trapezoidal (auto), solver"),
+@pytest.mark.parametrize("argv, says", [((), "dt 0.02 s, trapezoidal (rho_infinity 0.961) (auto), solver"),   # damped: exp(-dt / 0.5 s)
                                         (("--integrator", "bdf2"), "dt 0.02 s, bdf2, solver")])
 def test_the_summary_names_the_integrator_the_steps_took(here, argv, says):
     code, out, err = run("simulate", "cube86", "--steps", "2", *argv)

@@ -42,6 +42,13 @@ def test_profile_lists_the_solver_kernels_and_their_shares_add_up():
     assert abs(sum(kernels) - total) < 0.1 * len(kernels)       # rounding of each row
     assert abs(total + outside - 100) < 0.2
     assert 0 < total <= 100 and outside >= 0                    # the steps' wall time holds their kernels
+    # launches per step, per Newton and per PCG iteration, from the table's tasks and the steps' counts
+    line = next(line for line in out.splitlines() if line.startswith("launches: "))
+    numbers = [float(word) for word in line.replace(",", " ").replace(";", " ").split() if word[0].isdigit()]
+    per_step, newton, per_newton, pcg, per_pcg = numbers
+    all_tasks, cg_tasks = int(rows["all kernels"][1]), int(rows["cg_iterations"][1])
+    assert per_step == round(all_tasks / 5) and newton == 1.0 and per_newton == round(all_tasks / 5)
+    assert pcg > 0 and abs(per_pcg - cg_tasks / (5 * pcg)) <= 0.05 * per_pcg + 0.05   # pcg is rounded
 
 
 def test_profile_of_a_pile_whose_steps_differ_has_no_share_over_100_percent():

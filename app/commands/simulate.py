@@ -81,6 +81,18 @@ def run_steps(args, sim, compiling):
     return check_rejected(rows, sim.settings.dt)
 
 
+def launches_line(table, rows, steps):
+    """'launches: 412 device tasks a step; 2.0 Newton iterations a step, 206 tasks each; 31.5 PCG
+    iterations a step, cg_iterations 1.4 tasks each': what bounds a small step on a GPU, where each
+    task costs a launch (docs/gpu.md). rows: the steps' columns, the first (not profiled) left out."""
+    tasks = sum(r["tasks"] for r in table)
+    newton, cg = sum(rows["newton_iters"][1:]), sum(rows["solver_iters"][1:])
+    cg_tasks = sum(r["tasks"] for r in table if r["kernel"] == "cg_iterations")
+    return (f"launches: {tasks / steps:.0f} device tasks a step; {newton / steps:.1f} Newton iterations a step, "
+            f"{tasks / newton if newton else 0:.0f} tasks each; {cg / steps:.1f} PCG iterations a step, "
+            f"cg_iterations {cg_tasks / cg if cg else 0:.1f} tasks each")
+
+
 def profile_table(rows, compiled_later=()):
     """The kernel profile of the steps after the first (which compiles the kernels), with each
     kernel's share of those steps' wall time; a line saying why there is none with fewer than
@@ -94,7 +106,7 @@ def profile_table(rows, compiled_later=()):
     table = profile.rows(profile.kernels(), steps, total)
     return (f"kernel profile of the {counted(steps, 'step')} after the first ({statistics.median(wall):.2f} ms/step "
             f"median, {total:.1f} ms in all, with the profiler on):\n"
-            + profile.markdown(table, steps, total)
+            + profile.markdown(table, steps, total) + "\n" + launches_line(table, rows, steps)
             + (f"\n{counted(len(compiled_later), 'kernel')} compiled during these steps (the first step did not "
                f"need them); their compiling is counted outside kernels: profile more steps to make it a small "
                f"share" if compiled_later else ""))
@@ -104,7 +116,8 @@ class Tally:
     """What the summary needs of every step (time, iterations, converged, finite), kept as
     compact columns: a million steps take 30 MB, not the 0.8 GB of their stats rows."""
 
-    KEYS = {"wall_ms": "d", "solver_iters": "d", "newton_iters": "d", "converged": "b", "finite": "b"}
+    KEYS = {"wall_ms": "d", "solver_iters": "d", "newton_iters": "d", "converged": "b", "finite": "b",
+            "energy_limited": "d", "retried": "d"}
 
     def __init__(self):
         self.columns = {key: array(code) for key, code in self.KEYS.items()}
@@ -160,6 +173,13 @@ def preconditioner_note(sim):
     return f", {name} preconditioner" if name else ""
 
 
+def tolerance_note(settings):
+    """"1e-4", or "1e-4, 2.5e-05 at this dt": the tolerance set, and the one the steps take where
+    it follows a dt below 0.02 s (SolverSettings.tolerances_at)."""
+    taken = settings.tolerances_at(settings.dt)[0]
+    return f"{settings.tolerance:g}" + (f", {taken:.3g} at this dt" if taken < settings.tolerance else "")
+
+
 def integrator_note(sim):
     """"trapezoidal (auto)": the integrator the steps take (with its rho_infinity where it has
     numerical dissipation), and whether "auto" chose it."""
@@ -175,7 +195,7 @@ def summary(sim, rows):
     iters = rows["solver_iters"] or [0]
     lines = [f"scene {sim.scene.name}: {m.n_tets} tets, {m.n_vertices} vertices, "
              f"{counted(len(m.bodies), 'body', 'bodies')}, dt {sim.settings.dt:g} s, {integrator_note(sim)}, solver {sim.settings.method} "
-             f"(tol {sim.settings.tolerance:g}{preconditioner_note(sim)}), {fem.runtime.current().get('arch')} "
+             f"(tol {tolerance_note(sim.settings)}{preconditioner_note(sim)}), {fem.runtime.current().get('arch')} "
              f"{fem.runtime.current().get('precision')}"]
     for i, b in enumerate(m.bodies):
         quality = mesh_quality(sim.scene.bodies[i].mesh)
@@ -187,7 +207,8 @@ def summary(sim, rows):
     lines.append(f"{counted(len(rows), 'step')} to t = {sim.t:.3f} s: {statistics.median(ms):.2f} ms/step (median), "
                  f"{statistics.mean(rows['newton_iters'] or [0]):.1f} Newton and "
                  f"{statistics.mean(iters):.1f} solver iterations/step ({sim.step_kind} step), "
-                 f"{counted(not_converged, 'step')} not converged, {counted(rejected, 'step')} rejected")
+                 f"{counted(not_converged, 'step')} not converged{fallback_note(rows)}, "
+                 f"{counted(rejected, 'step')} rejected")
     lines.append(f"energy: {energy_terms(sim, final)}; inverted tets {final['inverted_tets']}")
     if sim.solver.switches.contact:
         record, smallest = sim.contact_record, sim.contact_record["smallest_distance"]
@@ -201,6 +222,16 @@ def summary(sim, rows):
                      f"where one would have sunk into it; {counted(sunk, 'step')} failed, ending with vertices "
                      f"deeper than {SUNK:.0%} of their body's size" + (": try a smaller dt" if sunk else ""))
     return "\n".join(lines)
+
+
+def fallback_note(rows):
+    """' (of them 3 with a rigid step instead of the solve's, 1 taken again by backward Euler)':
+    the steps whose solve failed for some body, which the safeguards replaced (fem/implicit/safeguards.py)."""
+    trimmed = sum(1 for n in rows["energy_limited"] if n > 0)
+    retried = sum(1 for n in rows["retried"] if n > 0)
+    parts = ([f"{trimmed} with a rigid step instead of the solve's"] if trimmed else []) \
+        + ([f"{retried} taken again by backward Euler"] if retried else [])
+    return f" (of them {', '.join(parts)})" if parts else ""
 
 
 ENERGY_TERMS = (("kinetic", "kinetic_energy"), ("elastic", "elastic_energy"),

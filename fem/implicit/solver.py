@@ -35,7 +35,8 @@ class StepInfo:
 
     finite: every new position and velocity is finite (else the caller keeps the old state).
     converged: every body's gradient met the tolerance (single step: the linear solve did);
-        a Newton step that stopped for another reason (velocities settled, max_newton) did not.
+        a Newton step that stopped for another reason (velocities settled, max_newton) did not,
+        nor did one where some body was trimmed (energy_limited) or the step retried.
     residual: max over bodies of |grad_b E| / s_b at the answer, dimensionless (s_b: the size of the
         body's terms): <= tolerance when converged, unless the step stopped at round-off
         (`at_floor`). The one-solve step: its linear solve's residual.
@@ -154,7 +155,9 @@ class ImplicitSolver:
         cM, cK = p.coefficients(h)
         self.refresh(cM, cK, h, dt)
         scale = dt / self.last_dt if self.last_dt > 0 else 0.0          # extrapolate the last change this far
-        tolerance = max(settings.tolerance, ROUNDOFF * epsilon())       # none below round-off
+        tolerance, newton_tolerance = settings.tolerances_at(dt)       # tighter below dt 0.02 s
+        tolerance = max(tolerance, ROUNDOFF * epsilon())                # none below round-off
+        settings = replace(settings, newton_tolerance=newton_tolerance)
 
         # where the step starts, its energy, the guess, the integrator's inertia target, the first iterate
         moved = p.begin(state_in.x, state_in.v, self.x_end)
@@ -208,7 +211,8 @@ class ImplicitSolver:
         if retry and strained > 0 and newton and not contact and integrator != "backward-euler":
             self.end_known = None                   # start again from x_n: its rotations anew
             again = self.step(state_in, state_out, dt, retry=False)
-            return replace(again, retried=int(rigid), solve_ms=1e3 * (time.perf_counter() - start) - again.rotation_ms)
+            return replace(again, retried=int(rigid), converged=False,    # the second-order solve failed
+                           solve_ms=1e3 * (time.perf_counter() - start) - again.rotation_ms)
         if finite and rigid > 0 and not contact:     # a rigid step's rounding strains a stiff body in f32
             rotation_ms += self.update_rotations(p.x, corotational)[0]
             self.safeguards.settle(state_in.x, p.x, p.v)
@@ -225,7 +229,7 @@ class ImplicitSolver:
         self.last_dt = dt
         ti.sync()
 
-        converged = bool(solved.rho <= 1.0)
+        converged = bool(solved.rho <= 1.0) and trimmed == 0    # a trimmed body's solve failed
         if newton or ((ground or contact) and not model.any_naive):   # the gradient at the answer, no floor
             residual = math.sqrt(max(p.relative[None], 0.0))
         else:
