@@ -7,10 +7,10 @@ With d = |r| the distance between the pair's closest points (`points_gap`: r = p
 w the barycentric weights of the triangle's point closest to p; for edges r = a(s) - b(t)), the
 pair stores
 
-    C(x) = -k m_p (d_hat - d)^2 ln(d / d_hat)  for d < d_hat,   k = CONTACT_STIFFNESS / dt^2   (J)
+    C(x) = -k m_p (d_hat - d)^2 ln(d / d_hat)  for d < d_hat,   k = PAIR_STIFFNESS / dt^2   (J)
 
 IPC's log barrier (Li et al. 2020, `barrier` in fem/implicit/pair_geometry.py) across a contact thickness d_hat (the scene's
-`distance`), with the ground's stiffness k m_p (fem/implicit/effects.py). It has no kink at d_hat
+`distance`), as stiff as the ground's penalty (fem/implicit/effects.py). It has no kink at d_hat
 and grows without bound as d -> 0: a penalty k m_p / 2 (d_hat - d)^2 stores at most
 k m_p d_hat^2 / 2, less than a plate at 100 m/s brings, and the step's minimisation pushed such
 pairs together until they crossed. Its gradient is exact: grad_p d = n = (p - c) / d, grad_tj d =
@@ -73,7 +73,10 @@ SAFETY = 0.9                 # a line search step closes at most this share of a
 PAIRS_PER_VERTEX = 64        # room for candidate pairs; more are dropped, and the run warns (fem/simulation.py)
 MOLLIFIER = 1e-3             # edges closer to parallel than sin^2 = this fade out (`Contact.mollifier`)
 ADVANCES = 32                # additive CCD's conservative advances per pair and line search
-PAIR_STIFFNESS = 30.0        # k dt^2 of the pairs' barrier, in units of a vertex's inertia over one step
+# k dt^2 of the pairs' barrier, in units of a vertex's inertia over one step, as the ground's. Measured at 30:
+# two_boxes converged on every f64 step (58 of 60 at 1000), the pile no more often (19 of 60), and a box
+# resting on a slab in f32 on 105 of 110 steps (110 at 1000)
+PAIR_STIFFNESS = 1000.0
 NOISE = 2.0                  # a distance's round-off, in units of eps sum_a |c_a| |x_a|
 
 
