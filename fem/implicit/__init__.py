@@ -24,7 +24,8 @@ One module per part, each owning its fields and kernels; `ImplicitSolver` compos
     linear.py          PCG and Jacobi iteration on H d = -grad E
     preconditioner.py  block Jacobi and the coarse level (fem/coarse.py)
     effects.py         gravity, damping, pins and ground contact
-    contact.py         contact between bodies and within one: the pairs' barrier, friction, step bound
+    contact.py         contact between bodies and within one: the pairs' barrier, step bound
+    friction.py        Coulomb friction between contact pairs, lagged
     broad_phase.py     contact's candidate pairs (a spatial hash) and islands
     islands.py         the line search of bodies that contact couples
     pair_geometry.py   one contact pair: its distance, normal and weights, and IPC's barrier
