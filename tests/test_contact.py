@@ -29,6 +29,18 @@ def two_boxes(gap, distance=0.05, friction=0.0, dt=0.01):
                  solver=SolverSettings(dt=dt))
 
 
+def two_boxes_at(gap, **kwargs):
+    """A Simulation of `two_boxes` with the boxes `gap` apart, closer than the contact distance
+    where a test needs pairs inside it: a scene that starts there is refused (fem/contact_start.py),
+    so it is built 0.1 m apart and its upper box moved down by set_state."""
+    built = max(gap, 0.1)
+    sim = fem.Simulation(two_boxes(built, **kwargs))
+    x = sim.positions()
+    x[sim.model.bodies[1].vertices, 1] -= built - gap
+    sim.set_state(x, sim.velocities())
+    return sim
+
+
 # ------------------------------------------------------------ an independent check: point in tet
 
 def points_inside(x, tets, points, tol=1e-9):
@@ -131,7 +143,7 @@ def contact_terms(sim, x, h=1.0):
 
 
 def test_the_contact_gradient_is_the_energy_s_and_its_hessian_is_symmetric_and_psd(f64):
-    sim = fem.Simulation(two_boxes(gap=0.02))
+    sim = two_boxes_at(0.02)
     contact, m = sim.solver.effects.contact, sim.model
     x = sim.state.x.to_numpy()[:m.n_vertices].astype(np.float64)
     upper = x[m.bodies[1].vertices]
@@ -219,7 +231,7 @@ def test_the_step_bound_keeps_the_pairs_apart_and_lets_a_slide_take_its_full_ste
     from how far the points move, and not where, gave 0.18); coming straight down, the step stops
     the box before it reaches the other, a tenth of the gap apart (numpy's distances, not the
     contact code's), and no earlier than the straight line allows (0.9 of 0.02 m over 0.1 m)."""
-    sim = fem.Simulation(two_boxes(gap=0.02))
+    sim = two_boxes_at(0.02)
     contact, m = sim.solver.effects.contact, sim.model
     x = sim.state.x.to_numpy()[:m.n_vertices].astype(np.float64)
     upper = m.bodies[1].vertices
@@ -250,19 +262,23 @@ def test_a_box_sliding_on_another_slows_at_mu_g_and_every_step_converges(f64):
     settling to sliding. Newton's own model of friction sends a sliding pair that should stop far
     past rest: before the first iterations took its majorizer, settling steps ran to max_newton."""
     lower = box(2, (2.0, 0.4, 1.0), (0.0, 0.2, 0.0), "lower")
-    upper = box(2, (0.4, 0.4, 0.4), (-0.5, 0.609, 0.0), "upper")
+    upper = box(2, (0.4, 0.4, 0.4), (-0.5, 0.615, 0.0), "upper")      # 15 mm above: it lands first
     for body in (lower, upper):
         body.material = Material(1e6, 0.3, 1000.0)
     sim = fem.Simulation(Scene("slide", [lower, upper], solver=SolverSettings(dt=0.01),
                                effects=Effects(gravity=(0.0, -9.81, 0.0), ground=0.0, friction=0.5,
                                                contact=ContactEffect(0.01, 0.3))))
-    rows = [sim.step() for _ in range(20)]
+    rows = [sim.step() for _ in range(30)]
     v = sim.velocities()
     top = sim.model.bodies[1].vertices
     v[top, 0] += 2.0
     sim.set_state(sim.positions(), v)
     rows += [sim.step() for _ in range(30)]
-    assert all(row["converged"] for row in rows)
+    # the first step, in free fall 15 mm above, takes a rigid step instead of its solve's (the
+    # residual's rise, which its deformation cannot pay for: docs/method.md, section 6), and says
+    # it did not converge; every step after it converges, landing, settling and sliding
+    assert rows[0]["energy_limited"] == 1 and not rows[0]["converged"]
+    assert all(row["converged"] for row in rows[1:])
     assert sim.velocities()[top, 0].mean() == pytest.approx(2.0 - 0.3 * 9.81 * 0.3, rel=0.03)
     assert abs(sim.velocities()[sim.model.bodies[0].vertices, 0].mean()) < 0.01
 
