@@ -128,9 +128,10 @@ def test_a_rise_nothing_can_pay_for_takes_a_rigid_step_and_the_body_moves_on(f64
     """A step whose end (here: every relative velocity 2 times the start's) has more energy than
     its deformation can give back is trimmed: the body takes a rigid step from its start instead
     (Safeguards.fall_back), never back to rest. Checked against numpy: its shape is the start's
-    turned by omega_n dt (Rodrigues) about a centre moved by dt (v_c,n + v_c,n+1) / 2, its
-    velocities the rigid ones, its energy the start's less the start's deformation kinetic
-    energy, its momentum the step's."""
+    turned rigidly (close to omega_n dt, as a free rigid body turns: its angular momentum and its
+    spin's kinetic energy kept) about a centre moved by dt (v_c,n + v_c,n+1) / 2, its velocities
+    the rigid ones, its energy the start's less the start's deformation kinetic energy, its
+    momentum the step's."""
     dt = 0.02
     sim = fem.Simulation(make_scene(box_mesh(3), "corotational", E=1e4, nu=0.3))
     n, cap = sim.model.n_vertices, sim.model.capacity.vertices
@@ -156,13 +157,28 @@ def test_a_rise_nothing_can_pay_for_takes_a_rigid_step_and_the_body_moves_on(f64
     guard.body_energy(sim.state.x, sim.state.v, 0, 1)             # BEFORE: the start's energy and L
     _, trimmed, rigid, _ = guard.after_step(sim.state, dt, dt, True, 0, 0)
     assert (trimmed, rigid) == (1, 1)
+    v_c_end = v_c + [0.0, 0.1, 0.0]
+    c_end = c + dt * (v_c + v_c_end) / 2
+    x_after, v_after = p.x.to_numpy()[:n].astype(np.float64), p.v.to_numpy()[:n].astype(np.float64)
+    np.testing.assert_allclose((m * x_after).sum(0) / m.sum(), c_end, atol=1e-12)
+    # the start's shape turned rigidly (the best rotation R, by an SVD), with rigid velocities
+    U, _, Vt = np.linalg.svd(((x_after - c_end) * m).T @ r)
+    R = U @ Vt
+    np.testing.assert_allclose(x_after, c_end + r @ R.T, atol=1e-12)
+    u = v_after - v_c_end
+    # a free rigid body's turn: the start's angular momentum about the centre, and its spin's
+    # kinetic energy, kept exactly (the wobble carried none: it is dropped)
+    inertia0 = (m[:, :, None] * ((r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])).sum(0)
+    L_end = (m * np.cross(x_after - c_end, u)).sum(0)
+    np.testing.assert_allclose(L_end, inertia0 @ omega, atol=1e-12 * np.linalg.norm(inertia0 @ omega))
+    assert 0.5 * (m * u ** 2).sum() == pytest.approx(0.5 * omega @ inertia0 @ omega, rel=1e-12)
+    spin = np.linalg.lstsq(np.concatenate([np.cross(np.eye(3)[k], x_after - c_end).reshape(-1, 1) for k in range(3)], 1),
+                           u.reshape(-1), rcond=None)[0]
+    np.testing.assert_allclose(u, np.cross(spin, x_after - c_end), atol=1e-12)
+    # and, to second order in dt, the turn by omega dt about y
     angle = 3.0 * dt
     turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
-    v_c_end = v_c + [0.0, 0.1, 0.0]
-    expected_x = c + dt * (v_c + v_c_end) / 2 + r @ turn.T
-    x_after, v_after = p.x.to_numpy()[:n].astype(np.float64), p.v.to_numpy()[:n].astype(np.float64)
-    np.testing.assert_allclose(x_after, expected_x, atol=1e-12)
-    np.testing.assert_allclose(v_after, v_c_end + np.cross(omega, r @ turn.T), atol=1e-12)
+    assert np.abs(R - turn).max() < angle ** 2
     sim.set_state(x_after, v_after)
     wobble_energy = 0.5 * (m * wobble ** 2).sum()
     momentum_gain = 0.5 * m.sum() * (v_c_end @ v_c_end - v_c @ v_c)

@@ -6,7 +6,6 @@ Safeguards'.
 
 import taichi as ti
 
-from fem.runtime import has_f64_trigonometry
 
 BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
 STAY = 2                 # body_fallback: the trimmed body stays at x_n (`slowed`)
@@ -15,11 +14,13 @@ STAY = 2                 # body_fallback: the trimmed body stays at x_n (`slowed
 # (`strained`): its step is taken again by backward Euler, not rigidly
 STRAINED = 1e-3
 STRAINED_STRAIN = 1e-3
+FREE_TURN_ITERATIONS = 40    # `free_turn`'s fixed point: each contracts by about dt |omega| (0.2 at 10 rad/s, dt 0.02 s)
 
 
 @ti.data_oriented
 class Fallback:
-    """`fall_back`, `slowed` and `settle`, on the fields of fem.implicit.safeguards.Safeguards."""
+    """`fall_back`, `slowed` and `settle`, and each body's rigid motion (`rigid_motion`: its centre,
+    spin and inertia), on the fields of fem.implicit.safeguards.Safeguards."""
 
     @ti.func
     def slowed(self, b, energy):
@@ -40,9 +41,10 @@ class Fallback:
         """A trimmed body takes a step whose energy is known instead. Only a failed solve gets
         here: a capped linear solve, or an integrator that cannot follow that body at this dt.
 
-        A free body takes a rigid step: its start shape x_n, turned by its start spin omega_n for
-        dt about a centre that moves as the step's momentum says, c_n + dt (v_c,n + v_c,n+1) / 2,
-        with the rigid velocities v_c,n+1 + omega_n x r. Its strains, and so its elastic energy,
+        A free body takes a rigid step: its start shape x_n, turned as a free rigid body with its
+        start inertia and angular momentum turns (`free_turn`: both its angular momentum and its
+        spin's kinetic energy kept exactly) about a centre that moves as the step's momentum says, c_n + dt (v_c,n + v_c,n+1) / 2,
+        with the rigid velocities v_c,n+1 + omega' x r. Its strains, and so its elastic energy,
         are those it began with, its spin keeps its kinetic energy, its centre trades kinetic for
         gravitational energy exactly as the trapezoidal rule does, and only its deformation's
         kinetic energy goes: the energy cannot rise, and the body goes on moving (a stiff body,
@@ -60,12 +62,11 @@ class Fallback:
         self.rigid_motion(x_n, v_n)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            omega = self.body_spin[b]
             R = ti.Matrix.identity(ti.f64, 3)
             if self.model.body_method[b] == 0:    # a turned linear body is strained: it only translates
                 self.body_spin[b] = ti.Vector.zero(ti.f64, 3)
-            else:
-                R = turn(omega * dt)
+            elif self.body_spin[b].norm() > 0.0:
+                R, self.body_spin[b] = free_turn(self.body_inertia[b], self.body_spin[b], dt)
             self.body_inertia[b] = R                                  # reused: the turn
             self.body_shift_vector[b] = 0.5 * dt * (self.centre_velocity(b) + self.body_spin_new[b])
         if ti.static(self.effects.has_ground):      # would the rigid step reach into the ground?
@@ -143,6 +144,77 @@ class Fallback:
                 count += 1
         return count
 
+    # ------------------------------------------------------------ a body's rigid motion
+
+    @ti.func
+    def rigid_motion(self, x: ti.template(), v: ti.template()):
+        """Per body: its centre's velocity (pinned: 0), its spin omega = I^-1 L (pinned: 0), the
+        kinetic energy of its motion about the centre (body_kinetic) and of its deformation,
+        v - v_cm - omega x r (body_deformation); free vertices only."""
+        self.sleep.sums.reduce(self.moments, self.store_centre, (x, v))
+        self.sleep.sums.reduce(self.turning, self.store_spin, (x, v))
+        self.sleep.sums.reduce(self.deforming, self.store_deformation, (x, v))
+
+    @ti.func
+    def moments(self, i, b, data: ti.template()):
+        """Free vertex i's (mass, momentum, first moment m x)."""
+        x, v = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+        p, q = m * ti.cast(v[i], ti.f64), m * ti.cast(x[i], ti.f64)
+        return ti.Vector([m, p[0], p[1], p[2], q[0], q[1], q[2], 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_centre(self, b, total, data: ti.template()):
+        m = total[0]
+        self.body_mass[b] = m
+        self.body_momentum_vector[b] = ti.Vector([total[1], total[2], total[3]])
+        self.body_centre[b] = ti.Vector([total[4], total[5], total[6]])
+        if m > 0:
+            self.body_centre[b] /= m
+
+    @ti.func
+    def turning(self, i, b, data: ti.template()):
+        """Free vertex i's motion about its body's centre: (angular momentum m r x u, inertia
+        m (r.r I - r r^T) as xx yy zz xy xz yz, kinetic energy m |u|^2 / 2)."""
+        x, v = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+        r = ti.cast(x[i], ti.f64) - self.body_centre[b]
+        u = ti.cast(v[i], ti.f64) - self.centre_velocity(b)
+        L = m * r.cross(u)
+        return ti.Vector([L[0], L[1], L[2],
+                          m * (r[1] * r[1] + r[2] * r[2]), m * (r[0] * r[0] + r[2] * r[2]), m * (r[0] * r[0] + r[1] * r[1]),
+                          -m * r[0] * r[1], -m * r[0] * r[2], -m * r[1] * r[2], 0.5 * m * u.norm_sqr()], ti.f64)
+
+    @ti.func
+    def store_spin(self, b, total, data: ti.template()):
+        """omega = I^-1 L (pinned, or no inertia: 0)."""
+        I = ti.Matrix([[total[3], total[6], total[7]], [total[6], total[4], total[8]], [total[7], total[8], total[5]]], ti.f64)
+        omega = ti.Vector.zero(ti.f64, 3)
+        if self.body_pinned[b] == 0 and I.determinant() > 1e-12 * I.trace() ** 3:
+            omega = I.inverse() @ ti.Vector([total[0], total[1], total[2]])
+        self.body_inertia[b], self.body_spin[b], self.body_kinetic[b] = I, omega, total[9]
+
+    @ti.func
+    def deforming(self, i, b, data: ti.template()):
+        """Free vertex i's kinetic energy of deformation, m |v - v_c - omega x r|^2 / 2."""
+        x, v = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+        r = ti.cast(x[i], ti.f64) - self.body_centre[b]
+        w = ti.cast(v[i], ti.f64) - self.centre_velocity(b) - self.body_spin[b].cross(r)
+        return ti.Vector([0.5 * m * w.norm_sqr(), 0, 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_deformation(self, b, total, data: ti.template()):
+        self.body_deformation[b] = total[0]
+        self.body_moving[b] = self.body_kinetic[b] + 0.5 * self.centre_velocity(b).norm_sqr() * self.body_mass[b]
+
+    @ti.func
+    def centre_velocity(self, b):
+        c = ti.Vector.zero(ti.f64, 3)
+        if self.body_pinned[b] == 0 and self.body_mass[b] > 0:
+            c = self.body_momentum_vector[b] / self.body_mass[b]
+        return c
+
     @ti.func
     def rigid_position(self, x_n: ti.template(), i, b):
         """Where `fall_back`'s rigid step takes vertex i of body b."""
@@ -160,22 +232,30 @@ class Fallback:
 
 
 @ti.func
-def turn(phi):
-    """The rotation by the angle |phi| about phi (float64), from its unit quaternion: orthogonal
-    to round-off whatever precision the half angle's sine and cosine come in (float32 where the
-    backend has no float64 trigonometry, such as Vulkan)."""
-    half = 0.5 * phi.norm()
-    c, s = ti.cast(1.0, ti.f64), ti.cast(0.0, ti.f64)
-    if ti.static(has_f64_trigonometry()):
-        c, s = ti.cos(half), ti.sin(half)
-    else:
-        c, s = ti.cast(ti.cos(ti.cast(half, ti.f32)), ti.f64), ti.cast(ti.sin(ti.cast(half, ti.f32)), ti.f64)
-    q = ti.Vector([c, 0.0, 0.0, 0.0], ti.f64)
-    if half > 0.0:
-        a = s * phi / phi.norm()
-        q = ti.Vector([c, a[0], a[1], a[2]], ti.f64)
-    q /= q.norm()
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return ti.Matrix([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]], ti.f64)
+def cayley(phi):
+    """The rotation (I - A / 2)^-1 (I + A / 2), A the cross-product matrix of phi (float64):
+    exactly orthogonal, a turn by 2 atan(|phi| / 2) about phi."""
+    A = ti.Matrix([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]], ti.f64)
+    I = ti.Matrix.identity(ti.f64, 3)
+    return (I - 0.5 * A).inverse() @ (I + 0.5 * A)
+
+
+@ti.func
+def free_turn(I, omega, dt):
+    """A free rigid body's turn over dt that keeps its angular momentum L = I omega and its
+    kinetic energy 1/2 omega.I omega exactly: (the turn R, the spin omega' after it), I its inertia
+    at the start (kg m^2, world frame), omega its spin there (1/s, float64).
+
+    Euler's equations in the body frame, dPi/dt = Pi x I^-1 Pi, by the implicit midpoint rule,
+    which keeps both of their quadratic invariants |Pi|^2 and Pi.I^-1 Pi: Pi_1 = cay(-dt w) Pi_0
+    with w = I^-1 (Pi_0 + Pi_1) / 2, found by fixed-point iterations (each contracts by about
+    dt |omega|), and the body turned by R = cay(dt w), so that R Pi_1 = Pi_0: the angular momentum
+    in the world frame is L_n. (Turning by omega_n dt with the spin kept, as before, changed an
+    asymmetric body's L by 20 % in 2 s.)"""
+    Pi0 = I @ omega
+    Iinv = I.inverse()
+    w = omega
+    for _ in range(FREE_TURN_ITERATIONS):
+        w = Iinv @ (0.5 * (Pi0 + cayley(-dt * w) @ Pi0))
+    R = cayley(dt * w)
+    return R, R @ (Iinv @ (cayley(-dt * w) @ Pi0))
