@@ -248,6 +248,13 @@ class State:
         self._load(Model.padded(x, rows), Model.padded(v, rows))
 
     @ti.kernel
+    def take(self, other: ti.template()):
+        """x, v <- other's: a step's result is copied in, not swapped in, so that every kernel
+        sees the same State each step and compiles once, not once for each of two."""
+        for i in range(self.x.shape[0]):
+            self.x[i], self.v[i] = other.x[i], other.v[i]
+
+    @ti.kernel
     def _load(self, x: ti.types.ndarray(), v: ti.types.ndarray()):
         for i in range(x.shape[0]):
             self.x[i] = ti.Vector([x[i, 0], x[i, 1], x[i, 2]])

@@ -19,7 +19,6 @@ import taichi as ti
 
 from fem import pool
 from fem.builder import initial_state, model_arrays, start_state
-from fem.contact_start import check_start
 from fem.errors import FemError
 from fem.scene import METHODS, Material, check_precision, select_vertices
 from fem.implicit.effects import FRICTION_SPEED
@@ -93,7 +92,9 @@ class Simulation:
         self.scene = scene                      # the description; never edited
         arrays = model_arrays(scene)
         bodies, X, T, mass, free = arrays
-        check_start(scene, start_state(scene, bodies, X, mass, free)[0], bodies, T)
+        if scene.effects.contact is not None:
+            from fem.contact_start import check_start     # scipy's k-d trees: 0.3 s of imports a scene without contact skips
+            check_start(scene, start_state(scene, bodies, X, mass, free)[0], bodies, T)
         if scene.effects.ground is not None or scene.effects.contact is not None:
             note = penalty_note(settings, scene.path or scene.name)   # what the trapezoidal rule becomes there
             if note:
@@ -233,7 +234,7 @@ class Simulation:
         return self.last
 
     def take(self, dt, splits, substeps):
-        """The solver's step of dt from self.state, swapped in when finite. Where the ground is on and
+        """The solver's step of dt from self.state, copied in when finite. Where the ground is on and
         the step would end with a vertex sunk too deep (`sunk`), it is taken again as two of dt / 2,
         each split the same way at most `splits` times more; the StepInfo then adds up the sub-steps'.
         substeps: {"substeps", "sunk"} counts the sub-steps taken and the vertices left too deep."""
@@ -243,7 +244,7 @@ class Simulation:
             return info
         deep = self.sunk(x) if substeps else 0
         if deep == 0 or splits == 0:
-            self.state, self.spare = self.spare, self.state
+            self.state.take(self.spare)
             if deep:
                 substeps["sunk"] += deep
             return info
