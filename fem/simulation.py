@@ -337,7 +337,7 @@ class Simulation:
         same fields."""
         work = self.solver.potential
         if x is None:
-            work.begin(self.state.x, self.state.v, self.state.x)
+            work.begin(self.state.x, self.state.v, self.solver.x_end)   # the step's own arguments: compiled once
         else:
             self.model.write(work.x, np.asarray(x, np.float64))
             work.v.fill(0.0)

@@ -2,6 +2,8 @@
 
     cold    `main.py simulate SCENE --steps 1` in a new process, Taichi's offline cache empty
     warm    the same with the user's own offline cache, after one run that fills it
+    taichi  `python -c "import taichi as ti; ti.init(arch=ti.cpu)"`, Taichi's own start, in turn
+            with the warm runs: what a warm start is measured against
     second  in one process, a second Simulation of the scene made after the first one is
             dropped, to the end of its first step (its kernels are compiled already, fem/pool.py)
     beside  the same while the first one is still alive: it needs parts of its own
@@ -34,6 +36,19 @@ def process_seconds(scene, cache=None):
     subprocess.run([sys.executable, str(ROOT / "main.py"), "simulate", scene, "--steps", "1"],
                    env=env, check=True, capture_output=True, timeout=600)
     return time.perf_counter() - start
+
+
+def taichi_seconds(repeats=3):
+    """Wall time of `python -c "import taichi as ti; ti.init(arch=ti.cpu)"` (median of `repeats`):
+    Taichi's own start, what a warm start is measured against."""
+    command = [sys.executable, "-c", "import taichi as ti; ti.init(arch=ti.cpu)"]
+
+    def once():
+        start = time.perf_counter()
+        subprocess.run(command, check=True, capture_output=True, timeout=300)
+        return time.perf_counter() - start
+
+    return statistics.median(once() for _ in range(repeats))
 
 
 def breakdown(scene, options=(), repeats=3):
@@ -69,7 +84,8 @@ def first_step_seconds(scene):
 
 
 def measure(scene_name, repeats=3, cold=True):
-    """{"cold_s", "warm_s", "second_s", "beside_s"}: medians over `repeats` (cold only if asked).
+    """{"cold_s", "warm_s", "taichi_s", "second_s", "beside_s"}: medians over `repeats` (cold only
+    if asked; taichi_s: Taichi's own start, `taichi_seconds`, measured between the warm starts).
     fem.init must have been called (second and beside run in this process)."""
     import scenes
 
@@ -79,7 +95,11 @@ def measure(scene_name, repeats=3, cold=True):
             out["cold_s"] = statistics.median(process_seconds(scene_name, Path(folder) / f"cold{k}")
                                               for k in range(repeats))
     process_seconds(scene_name)                            # fills the cache where it lacks the scene's kernels
-    out["warm_s"] = statistics.median(process_seconds(scene_name) for _ in range(repeats))
+    warm, taichi = [], []
+    for _ in range(repeats):              # in turn: both see the same load
+        warm.append(process_seconds(scene_name))
+        taichi.append(taichi_seconds(1))
+    out["warm_s"], out["taichi_s"] = statistics.median(warm), statistics.median(taichi)
     scene = scenes.load_scene(scene_name)
     first_step_seconds(scene)                              # compiles, then the Simulation is dropped
     seconds = []
@@ -181,3 +201,35 @@ def _a_display(display):
     finally:
         server.terminate()
         server.wait(10)
+
+
+def refresh_docs():
+    """Measure the start-up section of docs/benchmark.json again (what `bench --docs` measures
+    under "startup", the rest of the run kept) and render docs/benchmark.md from it:
+
+        python -m app.bench.startup
+    """
+    import json
+
+    import fem
+    from app.bench import report
+    from app.bench.plan import full_plan
+    from app.files import atomic_open
+
+    plan = full_plan()
+    path = report.DOCS / report.DOCS_FILES["json"]
+    results = json.loads(path.read_text())
+    fem.init("cpu", "f32")
+    start = measure(plan.startup)
+    start["resting_ms"] = resting_cost(plan.startup)
+    start.update(view_seconds(plan.startup))
+    start["breakdown"] = [breakdown(scene, options) for scene, options in plan.startup_breakdown]
+    results["startup"] = start
+    with atomic_open(path) as f:
+        json.dump(results, f, indent=1)
+    with atomic_open(report.DOCS / report.DOCS_FILES["md"]) as f:
+        f.write(report.markdown(results))
+
+
+if __name__ == "__main__":
+    refresh_docs()
