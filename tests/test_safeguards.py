@@ -155,7 +155,10 @@ def test_a_rise_nothing_can_pay_for_takes_a_rigid_step_and_the_body_moves_on(f64
     p.v.from_numpy(pad(v_end))
     hold_momentum(p, pad(x), pad(v_end), dt)
     guard.body_energy(sim.state.x, sim.state.v, 0, 1)             # BEFORE: the start's energy and L
-    _, trimmed, rigid, _ = guard.after_step(sim.state, dt, dt, True, 0, 0)
+    _, trimmed, rigid, _, pending = guard.after_step(sim.state, dt, dt, True, 0, 0)
+    assert pending == 1                       # its positions pay first (fem/implicit/projection.py): they cannot
+    trimmed, rigid, _, _ = guard.move_positions(sim.state, dt, 0, 0.0,
+                                                lambda x: sim.solver.update_rotations(x, True)[0])
     assert (trimmed, rigid) == (1, 1)
     v_c_end = v_c + [0.0, 0.1, 0.0]
     c_end = c + dt * (v_c + v_c_end) / 2
@@ -229,7 +232,7 @@ def test_a_rise_beyond_the_band_is_taken_down_to_its_middle(f64):
         guard.body_total[0, 0] = after - 0.5 * band              # BEFORE: within the band
         guard.body_lowest[0] = after - above * band
         guard.body_scale[0] = -1.0
-        _, limits, _, _ = guard.after_step(sim.state, 0.02, 0.02, True, 0, 0)
+        _, limits, _, _, _ = guard.after_step(sim.state, 0.02, 0.02, True, 0, 0)
         sim.set_state(sim.positions(), p.v.to_numpy()[:n].astype(np.float64))
         ends[above] = (limits, sim.stats()["total_energy"] - (after - above * band))
     assert ends[0.9] == (0, pytest.approx(0.9 * band, rel=1e-2))       # within the band: left alone

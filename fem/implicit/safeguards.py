@@ -33,7 +33,6 @@ Fields (bodies of the capacity; energies summed in float64):
     body_scale (bodies,)         J: the largest sum of its terms' sizes since then (-1: no band yet)
     body_elastic (bodies,)       its elastic energy when last summed, J: a step that starts where
                                  the last one ended (the same positions and rotations) reuses it
-    body_shift (bodies,)         s^2: the projection's shift along g is body_shift g (m)
     body_spin_before (bodies, 3) its angular momentum about its centre BEFORE the step, kg m^2/s
     body_spin_new (bodies, 3)    1/s: the spin it ends with (the conserving scheme: I^-1 L_n)
     body_shift_vector (bodies, 3)  m: a rigid step's move of the centre
@@ -54,6 +53,7 @@ import taichi as ti
 from fem.elastic import is_finite
 from fem.implicit.potential import ROUNDOFF
 from fem.implicit.fallback import AFTER, BEFORE, Fallback   # noqa: F401 (BEFORE, AFTER: the solver's too)
+from fem.implicit.projection import PENDING, InternalMove
 from fem.runtime import epsilon
 
 # The conserving projection gives energy back only where that scales a body's deformation
@@ -65,11 +65,11 @@ LIFT = 0.1
 # left 2e3 J where the formula said 0 (the sliver hard case, f32, dt 0.5 s)
 FAILED = 0.5
 FAR = 1e30           # m: the clearance of a body when there is no ground
-FOUR_I32 = ti.types.vector(4, ti.i32)
+FIVE_I32 = ti.types.vector(5, ti.i32)
 
 
 @ti.data_oriented
-class Safeguards(Fallback):
+class Safeguards(Fallback, InternalMove):
     """The step's last checks for one model, on the iterate of `potential`: energies from
     `elasticity` and `effects` (gravity), a sleeping body (`sleep`) left as it is; the
     trapezoidal rule's a_(n+1) into `history`."""
@@ -105,7 +105,7 @@ class Safeguards(Fallback):
         self.body_elastic_before = ti.field(ti.f64, nb)
         self.body_stiffness = ti.field(ti.f64, nb)
         self.body_quiet = ti.field(ti.f64, nb)
-        self.body_shift = ti.field(ti.f64, nb)
+        self.make_move_fields(nb, model.capacity.vertices)
         self.forget_band()
 
     def forget_band(self):
@@ -114,7 +114,7 @@ class Safeguards(Fallback):
 
     @ti.kernel
     def after_step(self, start: ti.template(), h: float, dt: float, energy: ti.template(), keep: ti.i32,
-                   conserve: ti.i32) -> FOUR_I32:
+                   conserve: ti.i32) -> FIVE_I32:
         """The step's last checks on the potential's iterate x, v, in one launch, from the step's
         start (`start`: a State, x_n and v_n); returns (vertices not finite, bodies trimmed,
         bodies that took a rigid step: the same, of those the `strained`). Without contact each
@@ -134,15 +134,15 @@ class Safeguards(Fallback):
         for i in range(self.model.vertex_count[None]):
             if keep:
                 self.history.accel[i] = (v[i] - v0[i]) / h
-        counts = ti.Vector([0, 0], ti.i32)
+        counts = ti.Vector([0, 0, 0], ti.i32)
         strained = 0
         if ti.static(energy):
             self.total_energy(x, v, AFTER, 1)
-            counts = self.limit_energy(x, v, dt, conserve)
-            if counts[1] > 0:
+            counts = self.limit_energy(x, v, dt, conserve, 0)
+            if counts[1] > 0 and counts[2] == 0:     # else after the move (`InternalMove.after_move`)
                 strained = self.strained()
                 self.fall_back(start.x, start.v, x, v, dt)
-        return ti.Vector([bad, counts[0], counts[1], strained], ti.i32)
+        return ti.Vector([bad, counts[0], counts[1], strained, counts[2]], ti.i32)
 
     @ti.func
     def check_finite(self, x: ti.template(), v: ti.template()):
@@ -296,25 +296,27 @@ class Safeguards(Fallback):
         self.body_total_size[when, self.island(b)] += total[1]
 
     @ti.func
-    def limit_energy(self, x: ti.template(), v: ti.template(), dt, conserve):
+    def limit_energy(self, x: ti.template(), v: ti.template(), dt, conserve, final):
         """Bring each body's energy to its target by the smallest correction that keeps its
-        momentum (module docstring, "The energy projection"). conserve=1 (the conserving scheme):
-        the target is the energy BEFORE the step, both ways, and an unpinned body's spin is set
-        to the angular momentum it began with, omega' = I^-1 L_n; else only a rise above the band
-        is taken out, to the band's middle, and the spin stays. Then its deformation velocities
-        w = v - v_c - omega x r are scaled by 1 - lam and (with gravity, off the ground) its
-        positions shifted by lam dt^2 g, lam the smaller root of the exact energy change
-        (lam^2 - 2 lam) K_w - lam dt^2 m |g|^2 = -excess. A body whose rise is more than that
-        can take (a failed solve: its deformation and height cannot pay for it) is trimmed:
-        where the scheme keeps no angular momentum (conserve=0) its spin pays too, scaled by
-        1 - lam with w (a converged BDF2 step of a spinning box, whose deformation holds 1e-3 of
-        its energy, rose by more than that); only a rise beyond that is a failed solve and
-        `fall_back`. A uniform shift keeps strains: the rotations and elastic energies at x stand.
-        Returns (bodies trimmed, bodies to `fall_back`): the projection itself is part of the
-        scheme and is not counted, nor is a body whose rise is round-off at rest (`body_quiet`),
-        which takes the rigid step, and so stays still, with no failed solve to count."""
+        momentum, its centre and its angular momentum (module docstring, "The energy projection").
+        conserve=1 (the conserving scheme): the target is the energy BEFORE the step, both ways,
+        and an unpinned body's spin is set to the angular momentum it began with,
+        omega' = I^-1 L_n; else only a rise above the band is taken out, to the band's middle,
+        and the spin stays. Then its deformation velocities w = v - v_c - omega x r are scaled by
+        1 - lam, lam the smaller root of the exact change (lam^2 - 2 lam) K_w = -excess. A rise
+        more than that can take is, on a free body off the ground (final=0), left for
+        `InternalMove` (fem/implicit/projection.py): its positions' deformation pays for it, and
+        this is done again at the moved positions (final=1). Where even then the rise is more
+        than the scale can take (a failed solve: its deformation cannot pay for it) the body is
+        trimmed: where the scheme keeps no angular momentum (conserve=0) its spin pays too,
+        scaled by 1 - lam with w (a converged BDF2 step of a spinning box, whose deformation
+        holds 1e-3 of its energy, rose by more than that); only a rise beyond that is a failed
+        solve and `fall_back`. Returns (bodies trimmed, bodies to `fall_back`, bodies left for
+        the move): the projection itself is part of the scheme and is not counted, nor is a body
+        whose rise is round-off at rest (`body_quiet`), which takes the rigid step, and so stays
+        still, with no failed solve to count."""
         self.rigid_motion(x, v)
-        trimmed, falls = 0, 0
+        trimmed, falls, pending = 0, 0, 0
         if ti.static(self.effects.has_contact):                # one island: body 0's entries hold the sums
             ti.loop_config(serialize=True)
             for b in range(1, self.model.body_count[None]):
@@ -336,20 +338,24 @@ class Safeguards(Fallback):
                     self.body_spin_new[b] = spun
             elif energy > self.body_lowest[b] + allowance:     # a rise within round-off is no rise
                 excess = energy - self.body_lowest[b] - 0.5 * allowance
-            K, G = self.body_deformation[b], ti.cast(0.0, ti.f64)
-            if ti.static(self.has_gravity and not self.effects.has_contact):   # a shift that could reach the ground is none
-                if self.body_pinned[b] == 0 and self.body_touching[b] == 0 \
-                        and excess < self.body_mass[b] * self.effects.gravity_vector().norm() * self.body_clearance[b]:
-                    G = dt * dt * self.body_mass[b] * ti.cast(self.effects.gravity_vector(), ti.f64).norm_sqr()
+            K = self.body_deformation[b]
             # a scheme that keeps no angular momentum (BDF2, damping, the ground) may take a rise
             # its deformation cannot pay for out of its spin too: v - v_c scaled whole
             spin = ti.cast(0.0, ti.f64)
             if ti.static(not self.effects.has_contact):
-                if not conserve and excess > FAILED * (K + G):
+                if not conserve and excess > FAILED * K:
                     spin = 0.5 * omega.dot(self.body_inertia[b] @ omega)
             lam = ti.cast(0.0, ti.f64)
             self.body_fallback[b] = 0
-            if excess > FAILED * (K + spin + G) and excess > allowance:
+            paid = excess
+            if final and excess > FAILED * (K + spin) and excess <= allowance + self.body_move[b][3]:
+                paid = FAILED * (K + spin)             # the rest is the solve's own error (`solve_band`)
+            elif excess > FAILED * (K + spin) and excess > allowance and final == 0 and self.movable(b):
+                self.body_fallback[b] = PENDING        # its positions pay first (`InternalMove`)
+                self.body_spin_new[b] = omega
+                self.body_move[b] = ti.Vector([excess, K + spin, 0.0, 0.0], ti.f64)
+                pending += 1
+            elif excess > FAILED * (K + spin) and excess > allowance:
                 self.body_fallback[b] = 1
                 falls += 1
                 # a body at rest (no gravity: terms of size 0) whose energy rose by round-off
@@ -357,21 +363,20 @@ class Safeguards(Fallback):
                 if excess > allowance + self.body_quiet[b]:
                     trimmed += 1
                 self.body_speed[b] = self.slowed(b, energy)
-            elif K + spin + G > 0.0 and ti.abs(excess) > allowance:   # round-off is not chased
+            if self.body_fallback[b] == 0 and K + spin > 0.0 and ti.abs(excess) > allowance:   # round-off is not chased
                 # the smaller root, in the form that does not cancel
                 W = K + spin
-                lam = 2.0 * excess / (2.0 * W + G + ti.sqrt(ti.max((2.0 * W + G) ** 2 - 4.0 * W * excess, 0.0)))
+                lam = 2.0 * paid / (2.0 * W + ti.sqrt(ti.max(4.0 * W * W - 4.0 * W * paid, 0.0)))
                 if lam < -LIFT:             # energy the step lost comes back only by a small correction
                     lam = 0.0
                 if spin > 0.0:
                     self.body_spin_new[b] = (1.0 - lam) * omega
             self.body_total[AFTER, b] = energy + 0.5 * (self.body_spin_new[b].dot(self.body_inertia[b] @ self.body_spin_new[b])
                                                         - omega.dot(self.body_inertia[b] @ omega)) \
-                + (lam * lam - 2.0 * lam) * K - lam * G
-            if self.body_fallback[b]:
+                + (lam * lam - 2.0 * lam) * K
+            if self.body_fallback[b] == 1:
                 self.body_total[AFTER, b] = self.body_total[BEFORE, b]     # at most: `fall_back`
             self.body_deformation[b] = 1.0 - lam          # reused: the factor
-            self.body_shift[b] = lam * dt * dt * (G > 0.0)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             b, f = self.model.vertex_body[i], self.island(self.model.vertex_body[i])    # f: whose factors
@@ -381,9 +386,7 @@ class Safeguards(Fallback):
                 w = ti.cast(v[i], ti.f64) - c - self.body_spin[b].cross(r)
                 u = c + self.body_spin_new[b].cross(r) + self.body_deformation[f] * w
                 v[i] = ti.cast(u * self.model.free[i], float)
-                if ti.static(self.has_gravity):
-                    x[i] += ti.cast(self.body_shift[b] * self.model.free[i], float) * self.effects.gravity_vector()
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):       # the band follows the corrected energy
             self.body_lowest[b] = ti.min(self.body_lowest[b], self.body_total[AFTER, b])
-        return ti.Vector([trimmed, falls], ti.i32)
+        return ti.Vector([trimmed, falls, pending], ti.i32)

@@ -205,9 +205,14 @@ class ImplicitSolver:
         # the safeguards: finite, momentum (of bodies no ground pushes), energy: the conserving scheme
         # (the trapezoidal rule, undamped, off the ground) is projected onto the energy it began with
         conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
-        bad, trimmed, rigid, strained = self.safeguards.after_step(state_in, h, dt, newton, int(target.one_step),
-                                                                   conserve)
+        bad, trimmed, rigid, strained, pending = self.safeguards.after_step(state_in, h, dt, newton,
+                                                                            int(target.one_step), conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
+        if finite and pending > 0:                  # a rise the velocities cannot pay: positions pay first
+            trimmed, rigid, strained, ms = self.safeguards.move_positions(
+                state_in, dt, conserve, tolerance if solved.rho <= 1.0 else 0.0,
+                lambda x: self.update_rotations(x, corotational)[0])
+            rotation_ms += ms
         if retry and strained > 0 and newton and not contact and integrator != "backward-euler":
             self.end_known = None                   # start again from x_n: its rotations anew
             again = self.step(state_in, state_out, dt, retry=False)
