@@ -30,7 +30,9 @@ One module per part, each owning its fields and kernels; `ImplicitSolver` compos
     islands.py         the line search of bodies that contact couples
     pair_geometry.py   one contact pair: its distance, normal and weights, and IPC's barrier
     sleep.py           which bodies the step moves
-    safeguards.py      finite results, momentum, no energy gain
+    safeguards.py      finite results, momentum, no energy gain: the energy projection
+    projection.py      the projection's move of positions, where scaled velocities cannot pay
+    fallback.py        the rigid step of a body whose rise nothing pays for, and each body's rigid motion
 
 Effects a scene leaves off are not compiled: gravity, pins, ground contact, contact between
 bodies and stiffness damping are `ti.static` branches fixed when the solver is made (`Switches`), and rotations

@@ -5,14 +5,17 @@ restricted to the body's internal motion, so that its centre, momentum and angul
 the integrator's. `InternalMove` is Safeguards' share (fem/implicit/safeguards.py decides which
 body, `limit_energy`); its fields are made by `make_move_fields`.
 
-The total energy's gradient in x is grad Psi - M g; the part of M^-1 of it that moves no centre
-and turns no body (what is left once its mass-weighted mean and rigid turn are taken out) is
-d = M^-1 f's internal part, f = -grad Psi the elastic forces: uniform gravity moves only the
-centre. A move x + mu d lowers Psi by mu |f|_M^-1^2 to first order (its first-order share of the rise: the nearest point
-in the norm |dx|_M^2 / dt^2 + |dv|_M^2, capped so that the velocities' scale is left at most
-half of what it may take), and mu is found on Psi itself: one evaluation at the first-order mu
-fits the curvature of Psi along d, and the second is where that quadratic reaches the share.
-What is left over, either way, the velocities' scale pays, at the moved positions.
+FEPR's Gauss-Newton step moves the state along the constraints' gradient; restricted to the
+internal motion (what moves no centre and turns no body: the mass-weighted mean and rigid turn
+taken out) the energy's is M w in v (the velocities' scale, `limit_energy`) and, in x, the
+internal part of -(grad Psi - M g), which is M d with d = M^-1 f's internal part, f = -grad Psi
+the elastic forces: uniform gravity moves only the centre. A move x + mu d lowers Psi by
+mu |f|^2_M^-1 to first order. The move pays all of the rise but the velocities' first-order share
+of the nearest point in the norm |dx|^2_M / dt^2 + |dv|^2_M, 2 K_w / (2 K_w + dt^2 |f|^2_M^-1),
+at most a quarter of K_w (half of what the scale may take), and mu is found on Psi itself, with
+the rotations extracted at each trial: Psi at the first-order mu fits Psi's curvature along d,
+and the second mu is where that quadratic reaches the move's share. What is left over, either
+way, the velocities' scale pays at the moved positions, where the spin is reset to L_n again.
 """
 
 import taichi as ti
@@ -29,8 +32,8 @@ class InternalMove:
 
     def make_move_fields(self, nb, nv):
         """body_move (bodies, 4): (the rise J, K_w J (+ the spin's kinetic energy where it may pay),
-        F2 = |f|^2_M^-1 J/s^2, -) and then (mu s^2, F2, Psi at mu = 0 J, the share the move pays J), and last the
-        band of `solve_band` (J);
+        F2 = |f|^2_M^-1 J/s^2, -), then (mu s^2, F2, Psi at mu = 0 J, the share the move pays J),
+        then the change of mu, and last the band of `solve_band` (J) in its fourth;
         move_direction (vertices, 3): d, m/s^2 (a force per mass)."""
         self.body_move = ti.Vector.field(4, ti.f64, nb)
         self.solve_tolerance = ti.field(ti.f64, ())     # the tolerance the step's solve met (`solve_band`)

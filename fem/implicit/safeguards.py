@@ -5,17 +5,19 @@
   forces can never change momentum: each unpinned body's velocity is shifted uniformly so
   that its momentum is exactly the integrator's (bodies the ground does not touch).
 - `limit_energy`, the energy projection (docs/method.md, section 6): each body is brought onto
-  its energy target by the smallest correction that keeps its momentum: its deformation
-  velocities (what is left of v once its centre's velocity and rigid spin omega x r are taken
-  out) scaled, and with gravity off the ground a uniform shift along g. For the conserving
+  its energy target by the smallest correction that keeps its momentum, centre and angular
+  momentum: its deformation velocities (what is left of v once its centre's velocity and rigid
+  spin omega x r are taken out) scaled, and where that cannot pay, its deformation's positions
+  moved first (`InternalMove`, fem/implicit/projection.py). For the conserving
   scheme (the undamped trapezoidal rule off the ground) the target is the energy the body
   began with, both ways, and its spin is reset to the angular momentum it began with; for
   every other Newton step only a rise is taken out. A rise within round-off is no rise, and
   round-off is measured against the body's own history (`start_band`): its energy may wander
   up to ROUNDOFF eps of the largest size its terms have had since the last change from
   outside above the lowest energy it has had since then, and no further.
-- `fall_back` (fem/implicit/fallback.py): a rise the projection cannot pay for (a failed solve) is trimmed: the body takes
-  a rigid step from its start instead, and goes on moving. StepInfo counts these trims.
+- `fall_back` (fem/implicit/fallback.py): a rise the projection cannot pay for, beyond the error the
+  solve's tolerance allows (a failed solve), is trimmed: the body takes a rigid step from its start
+  instead, and goes on moving. StepInfo counts these trims.
 
 Fields (bodies of the capacity; energies summed in float64):
     body_total (2, bodies)       each body's total energy [BEFORE, AFTER] the step, J
@@ -39,7 +41,6 @@ Fields (bodies of the capacity; energies summed in float64):
     body_fallback (bodies,)      1: trimmed this step (`fall_back`)
     body_touching (bodies,)      1: pressed into the ground at the step's start or end (`find_contacts`)
     body_speed (bodies,)         a trimmed body's velocity factor on the ground (`slowed`)
-    body_clearance (bodies,)     m: its lowest vertex's height above the ground at the step's end
     body_kinetic_before (bodies,)  J: its kinetic energy BEFORE the step
     body_elastic_before (bodies,)  J: its elastic energy BEFORE the step (`strained`)
     body_stiffness (bodies,)     J: sum of mu V over its tets (`strained`)
@@ -64,7 +65,6 @@ LIFT = 0.1
 # round-off: scaling a blown-up step's deformation (1.5e10 J made from 0.67 J) back by 1 - lam
 # left 2e3 J where the formula said 0 (the sliver hard case, f32, dt 0.5 s)
 FAILED = 0.5
-FAR = 1e30           # m: the clearance of a body when there is no ground
 FIVE_I32 = ti.types.vector(5, ti.i32)
 
 
@@ -100,7 +100,6 @@ class Safeguards(Fallback, InternalMove):
         self.body_shift_vector = ti.Vector.field(3, ti.f64, nb)
         self.body_speed = ti.field(ti.f64, nb)
         self.body_moving = ti.field(ti.f64, nb)
-        self.body_clearance = ti.field(float, nb)
         self.body_kinetic_before = ti.field(ti.f64, nb)
         self.body_elastic_before = ti.field(ti.f64, nb)
         self.body_stiffness = ti.field(ti.f64, nb)
@@ -158,28 +157,25 @@ class Safeguards(Fallback, InternalMove):
     def find_contacts(self, x_n: ti.template(), x: ti.template()):
         """body_touching[b] <- 1 where some vertex of body b is pressed into the ground at the
         step's start or end: the ground may have pushed it, so its momentum is not internal
-        forces' and gravity's alone. (No ground: every body is free.) body_clearance[b] <- how far
-        its lowest vertex is above the ground at the end (m): the energy projection's shift along
-        g may not reach it."""
+        forces' and gravity's alone. (No ground: every body is free.)"""
         if ti.static(self.effects.has_ground):
             self.sleep.fastest.reduce(self.ground_contact, self.store_contact, (x_n, x))
         else:
             ti.loop_config(serialize=True)
             for b in range(self.model.body_count[None]):
-                self.body_touching[b], self.body_clearance[b] = 0, FAR
+                self.body_touching[b] = 0
 
     @ti.func
     def ground_contact(self, i, b, data: ti.template()):
-        """Vertex i's (1 if pressed into the ground at the step's start or end else 0, its depth
-        below the ground at the end), for `find_contacts`' largest of each."""
+        """Vertex i's (1 if pressed into the ground at the step's start or end else 0, 0), for
+        `find_contacts`' largest."""
         x_n, x = ti.static(data[0], data[1])
         pressed = ti.cast(self.effects.pressed(x_n[i]) or self.effects.pressed(x[i]), ti.f64)
-        return ti.Vector([pressed, ti.cast(self.effects.ground[None] - x[i][1], ti.f64)])
+        return ti.Vector([pressed, 0.0], ti.f64)
 
     @ti.func
     def store_contact(self, b, largest, data: ti.template()):
         self.body_touching[b] = ti.cast(largest[0] > 0.5, ti.i32)
-        self.body_clearance[b] = ti.cast(-largest[1], float)
 
     @ti.func
     def restore_momentum(self, v0: ti.template(), x0: ti.template(), x: ti.template(), v: ti.template(), dt):
