@@ -166,13 +166,15 @@ def markdown(results):
 
 # What limits each speed target that a run does not meet (profiles taken on the 2-core machine).
 LIMITS = {
-    "warm": "a warm start of epcot (profiled): Python's imports 0.3 s, starting Taichi 0.17 s, building the "
-            "Simulation 0.3 s, the first Newton step 1.45 s and the summary 0.25 s. Of these about 2 s are "
-            "kernels, half in each of two stages that run even when the offline cache has the kernel: "
-            "Taichi's frontend translating its Python (the gradient and energy, the rotations, PCG and the "
-            "summary's measurements 0.15 to 0.3 s each), and loading it: Taichi 1.7's CPU backend caches "
-            "LLVM IR, not machine code, so LLVM optimises and compiles each of the 40 kernels again, about "
-            "15 ms for the smallest and 0.14 s for PCG's. 2 s would need far fewer, smaller kernels",
+    "warm": "a warm start of epcot: Python's imports about 0.5 s (Taichi's 0.26), starting Taichi 0.17 s, building "
+            "the Simulation 0.6 s, the first Newton step 2.9 s, the second 0.3 s (the SVD's kernel, compiled when "
+            "a tet first needs it) and the summary 0.3 s. Nearly 3 s are the 30 kernels' two stages that run even "
+            "when the offline cache has them: Taichi's frontend translating their Python (1.5 s; the energy "
+            "projection's after_step 0.43 s, Newton's energy and gradient passes 0.25 s each), and loading them: "
+            "Taichi 1.7's CPU backend caches LLVM IR, not machine code, so LLVM optimises (O3) and compiles each "
+            "again (1.3 s). A kernel that read one of the two States compiled twice (the states swapped each "
+            "step) until the step's result was copied instead (1.4 s less); 2 x Taichi's start needs a cache of "
+            "machine code or far less kernel code",
     "rotation": "on box50k, reading a tet's corners and Bm, forming F and writing Bm R^T and the quaternion "
                 "alone takes about 12 ns/tet on 2 cores; started from the last step's turn, one certified "
                 "Newton step on the polar decomposition finds R (two from the last R alone), and its scalar "
