@@ -415,8 +415,14 @@ class Newton:
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
             self.body_E_accepted[b] = self.potential.body_E[b]
+            if ti.static(self.potential.holds_frame):         # E_b in its own damping frame: the next search's
+                self.body_E_accepted[b] += self.potential.body_shift[b]
             if first:
                 self.body_resolution[b] = ti.static(ROUNDOFF * epsilon()) * ti.abs(self.potential.body_E[b])
+        if ti.static(self.potential.holds_frame):             # the next line search's damping frame
+            ti.loop_config(serialize=self.potential.serial_tets)
+            for e in range(self.model.tet_count[None]):
+                self.potential.held_Bm[e] = self.rotations.rotated_Bm[e]
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             self.velocity[i] = v[i]

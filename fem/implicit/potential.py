@@ -35,6 +35,9 @@ Fields (n vertices, bodies of the capacity):
     body_weight (bodies,) 1 / (tol^2 s_b^2 + floor_b): weights of the residuals' norm
     relative ()           max_b |grad_b|^2 / s_b^2 at the last iterate: the squared relative
                           residual, with no floor (what StepInfo.residual reports)
+    held_Bm (m, 3x3)      with contact and stiffness damping: Bm R^T of the accepted Newton iterate, the
+                          damping's frame in the line search that starts there (`holds_frame`), 1/m
+    body_shift (bodies,)  E_b in the iterate's own damping frame less E_b in held_Bm's, J
 """
 
 import taichi as ti
@@ -82,6 +85,17 @@ class IncrementalPotential:
         self.body_weight = ti.field(float, nb)
         self.relative = ti.field(ti.f64, ())
         self.rate_from_start = ti.field(ti.i32, ())       # 1: backward Euler's damping (`turn_rate`)
+        # The damping term h/2 v^T beta K(R) v is taken with R at the iterate, but its gradient, h beta K(R) v,
+        # holds R: along a line search E had a slope the gradient did not have (the 20-box pile, f64: E's
+        # change over a small step 0.05 to -17 times the slope's prediction once the gradient was small, and
+        # 1.000 with beta 0; the line search found no descent and stopped the step unconverged). With
+        # contact (where those steps were measured) the line search holds the damping's frame at the
+        # iterate it starts from (held_Bm), so that its E has the gradient's slope; the accepted iterate's
+        # E_b is then taken in its own frame (body_shift), the next search's
+        self.holds_frame = switches.stiffness_damping and switches.contact
+        if self.holds_frame:
+            self.held_Bm = ti.Matrix.field(3, 3, float, model.capacity.tets)
+            self.body_shift = ti.field(ti.f64, nb)
 
     def coefficients(self, h):
         """(cM, cK) of H = cM M + cK K for the effective step h (s)."""
@@ -149,7 +163,10 @@ class IncrementalPotential:
         body's tets in two stages (`Sleep.tet_sums`); corner <- the tet terms of grad E at
         (x, v), in the same pass: a trial iterate the line search accepts needs its gradient
         next. moving=0: v is 0 (as in gradient_corners), so the damping terms are too."""
-        self.sleep.tet_sums.reduce(self.tet_energy, self.add_energy, (x, v, dt, moving))
+        if ti.static(self.holds_frame):
+            self.sleep.tet_pairs.reduce(self.tet_energy, self.add_energy, (x, v, dt, moving))
+        else:
+            self.sleep.tet_sums.reduce(self.tet_energy, self.add_energy, (x, v, dt, moving))
 
     @ti.func
     def tet_energy(self, e, b, data: ti.template()):
@@ -159,20 +176,35 @@ class IncrementalPotential:
         B = self.gradient_tet(x, v, dt, moving, e)
         awake = ti.cast(self.sleep.tet_awake(e), ti.f64)
         total = awake * self.elasticity.elastic_energy(x, e)
-        if ti.static(self.has_stiffness_damping) and moving:
-            W = ti.cast(self.model.rest_volume[e], ti.f64)
-            mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
-            dF = ti.cast(self.model.edges(v, e), ti.f64) @ ti.cast(B, ti.f64)
-            if ti.static(self.has_stiffness_damping):
-                if self.rate_from_start[None]:
-                    dF += ti.cast(self.turn_rate(e, B, dt), ti.f64)
-            beta = ti.cast(dt * self.effects.stiffness_damping[None], ti.f64)
-            total += awake * beta * W * energy_density(dF, mu, lam, 0.0)
-        return ti.Vector([total], ti.f64)
+        own = ti.cast(0.0, ti.f64)                   # the damping in the iterate's own frame
+        if ti.static(self.has_stiffness_damping):
+            if moving:
+                own = self.damping_energy(v, dt, e, B, awake)
+        out = ti.Vector.zero(ti.f64, ti.static(2 if self.holds_frame else 1))
+        out[0] = total + own
+        if ti.static(self.holds_frame):              # the line search's E: the damping in the held frame
+            held = ti.cast(0.0, ti.f64)
+            if moving:
+                held = self.damping_energy(v, dt, e, self.held_Bm[e], awake)
+            out[0], out[1] = total + held, own - held
+        return out
+
+    @ti.func
+    def damping_energy(self, v: ti.template(), dt, e, B, awake):
+        """dt beta/2 v_e^T K v_e of tet e in the frame B = Bm R^T, float64 (J); 0 asleep (awake = 0)."""
+        W = ti.cast(self.model.rest_volume[e], ti.f64)
+        mu, lam = ti.cast(self.model.mu(e), ti.f64), ti.cast(self.model.lam(e), ti.f64)
+        dF = ti.cast(self.model.edges(v, e), ti.f64) @ ti.cast(B, ti.f64)
+        if self.rate_from_start[None]:
+            dF += ti.cast(self.turn_rate(e, B, dt), ti.f64)
+        beta = ti.cast(dt * self.effects.stiffness_damping[None], ti.f64)
+        return awake * beta * W * energy_density(dF, mu, lam, 0.0)
 
     @ti.func
     def add_energy(self, b, total, data: ti.template()):
         self.body_E[b] += total[0]
+        if ti.static(self.holds_frame):
+            self.body_shift[b] = total[1]
 
     # ------------------------------------------------------------ grad E
 

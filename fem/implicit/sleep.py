@@ -41,13 +41,19 @@ class Sleep:
         # CPU threads busy to the end (128 made box50k's energy passes 1.5 times as long)
         self.tet_sums = SegmentSums(model.capacity.tets, model.capacity.bodies, 1, ti.f64, serial=serial_tets,
                                     chunk=TET_CHUNK if runtime.on_cpu() else None)
+        # two numbers a tet: E_b with the damping in the line search's frame and in the iterate's own
+        # (IncrementalPotential.holds_frame)
+        self.tet_pairs = SegmentSums(model.capacity.tets, model.capacity.bodies, 2, ti.f64, serial=serial_tets,
+                                     chunk=TET_CHUNK if runtime.on_cpu() else None)
 
     def load(self):
         """A new scene: its bodies' vertex and tet ranges."""
         starts = np.array([b.vertices.start for b in self.model.bodies] + [self.model.n_vertices])
         self.fastest.load(starts)
         self.sums.load(starts)
-        self.tet_sums.load(np.array([b.tets.start for b in self.model.bodies] + [self.model.n_tets]))
+        tets = np.array([b.tets.start for b in self.model.bodies] + [self.model.n_tets])
+        self.tet_sums.load(tets)
+        self.tet_pairs.load(tets)
 
     @ti.func
     def tet_awake(self, e):
