@@ -3,12 +3,24 @@ sliding on it and a stack at rest meet the gradient's tolerance on their steps, 
 where a pair's distance is known only to eps |x| and its push to h k m_p b''(d) eps |x| (the
 stopping test's round-off floor, Contact.body_noise)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import fem
+import scenes
 from fem.scene import Body, ContactEffect, Effects, Material, Scene, SolverSettings
 from scenes.hard_cases import cube
+
+
+# the shares measured (2026-11-29, 2 cores, after the damping's frame was held in the line search and
+# friction majorized for 10 Newton iterations), less a step or two of margin: two_boxes 54 of 57 steps
+# after its fall in f32 and in f64 (f32 45 and f64 55 of 57 before), the pile 35 of its first 40 in f64
+# (10 of 40 before). Below the 95 % issue 60 asks for: what is left is friction's Newton model (see
+# test_a_damped_pile_converges)
+TWO_BOXES = {"f32": 0.9, "f64": 0.9}
+PILE = 0.85
 
 
 def box(size, position, name, cells=1):
@@ -65,3 +77,28 @@ def test_every_step_of_a_stack_at_rest_converges(precision, share):
     fem.init("cpu", precision)
     bodies = [box((0.3, 0.3, 0.3), (0.0, 0.15 + 0.312 * k, 0.0), f"box{k}") for k in range(3)]
     assert converged_share(fem.Simulation(scene(bodies)), 60, falling=1) >= share
+
+
+def scene_file(name):
+    return scenes.load_scene(Path(__file__).resolve().parents[1] / name)
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_two_boxes_converge(precision):
+    """scenes/two_boxes.toml: the upper box falls (its first steps a free fall, `converged_share`),
+    lands on the lower one at 3.7 m/s, bounces and settles."""
+    fem.init("cpu", precision)
+    assert converged_share(fem.Simulation(scene_file("scenes/two_boxes.toml")), 60, falling=3) >= TWO_BOXES[precision]
+
+
+def test_a_damped_pile_converges():
+    """examples/pile.toml (20 boxes, Rayleigh damping, friction 0.3 between them, f64), its first 0.8 s:
+    the boxes land and fall onto each other. Two things kept most of these steps from converging (28
+    of the 40 before): the line search's E took the stiffness damping in the frame of each trial
+    iterate, while its gradient held that frame (E's slope along the search 0.05 to -17 times the
+    gradient's once the gradient was small: no descent found, the step stopped unconverged); and
+    friction's Newton model, which has no curvature along a slide, sent pairs sliding at a few mm/s
+    to 0.1 to 0.27 m/s, so that the island's one line search halved 3 to 6 times a Newton iteration
+    (Newton.solve's MAJORIZED)."""
+    fem.init("cpu", "f64")
+    assert converged_share(fem.Simulation(scene_file("examples/pile.toml")), 40) >= PILE
