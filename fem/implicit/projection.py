@@ -142,7 +142,7 @@ class InternalMove:
         x, v = ti.static(self.potential.x, self.potential.v)
         self.sleep.fastest.reduce(self.lightest, self.solve_band, x)
         self.total_energy(x, v, AFTER, 1)
-        counts = self.limit_energy(x, v, dt, conserve, 1)
+        counts = self.limit_energy(x, v, conserve, 1)
         strained = 0
         if counts[1] > 0:
             strained = self.strained()

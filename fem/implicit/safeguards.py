@@ -137,7 +137,7 @@ class Safeguards(Fallback, InternalMove):
         strained = 0
         if ti.static(energy):
             self.total_energy(x, v, AFTER, 1)
-            counts = self.limit_energy(x, v, dt, conserve, 0)
+            counts = self.limit_energy(x, v, conserve, 0)
             if counts[1] > 0 and counts[2] == 0:     # else after the move (`InternalMove.after_move`)
                 strained = self.strained()
                 self.fall_back(start.x, start.v, x, v, dt)
@@ -292,7 +292,7 @@ class Safeguards(Fallback, InternalMove):
         self.body_total_size[when, self.island(b)] += total[1]
 
     @ti.func
-    def limit_energy(self, x: ti.template(), v: ti.template(), dt, conserve, final):
+    def limit_energy(self, x: ti.template(), v: ti.template(), conserve, final):
         """Bring each body's energy to its target by the smallest correction that keeps its
         momentum, its centre and its angular momentum (module docstring, "The energy projection").
         conserve=1 (the conserving scheme): the target is the energy BEFORE the step, both ways,
