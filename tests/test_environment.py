@@ -12,8 +12,11 @@ from test_cli import ROOT, final_error_line, one_error_line
 
 def simulate(tmp_path, change):
     """`main.py simulate cube --steps 1` in tmp_path with the environment changed as `change`
-    says ({name: value}, a value None unsets it)."""
+    says ({name: value}, a value None unsets it). A changed HOME also unsets XDG_CACHE_HOME, which
+    would otherwise name the cache folder whatever HOME is (a run of the suite with it set)."""
     env = {**os.environ, "FEM_CACHE_DIR": str(tmp_path / "cache")}
+    if "HOME" in change:
+        env.pop("XDG_CACHE_HOME", None)
     for name, value in change.items():
         if value is None:
             env.pop(name, None)

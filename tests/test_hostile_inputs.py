@@ -333,7 +333,7 @@ def test_no_cache_folder_taichi_can_write_is_one_error_line(here):
     crashed at exit (SIGSEGV, exit 139) after the run's output."""
     (here / "tmp").mkdir()
     (here / "tmp" / f"softfem-taichi-cache-{os.getuid()}").write_text("not a folder")
-    run_ = main_py(here, "simulate", "S.toml", "--steps", "1", env={"HOME": "/dev/null",
+    run_ = main_py(here, "simulate", "S.toml", "--steps", "1", env={"HOME": "/dev/null", "XDG_CACHE_HOME": None,
                                                                     "TMPDIR": str(here / "tmp")})
     assert run_.returncode == 2
     one_error_line(run_.stderr, "kernel cache folder /dev/null/.cache/taichi/ticache cannot be written, nor",
