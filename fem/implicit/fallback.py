@@ -208,6 +208,49 @@ class Fallback:
         self.body_deformation[b] = total[0]
         self.body_moving[b] = self.body_kinetic[b] + 0.5 * self.centre_velocity(b).norm_sqr() * self.body_mass[b]
 
+    @ti.kernel
+    def arc_first_iterate(self, x_n: ti.template(), velocity: ti.template(), guess: ti.template(), h: float,
+                          dt: float) -> ti.i32:
+        """The first Newton iterate, at x_n (backward Euler's v = 0), moved to the rigid motion
+        over dt of each free body too stiff for dt to follow: its centre's v_c dt and the turn
+        `free_turn` gives its start's spin and inertia (`rigid_motion` BEFORE the step); x, v (the
+        potential's iterate) and Newton's velocity and guess move by the same u. Returns how many
+        bodies moved.
+
+        From x_n, Newton's first step moves a turning body along its turn's tangent, which
+        stretches every tet by (omega dt)^2 / 2: Newton's quadratic model sees none of that, and
+        a stiff body answers it with (lam + 2 mu) (omega dt)^2 / 2 of stress. A spinning cube at
+        E 1e9, nu 0.49995 (3 rad/s, dt 0.02 s, f64) stalled at a relative residual of 1 for 20
+        iterations every step; from its arc it takes 2. Stiff means that sound crosses the body
+        within about a step, (lam + 2 mu) dt^2 r >= M with r its radius of gyration (c dt >= 2.8 r
+        for a cube): a soft body deforms through the step, and from its rigid motion Newton took
+        more iterations than from x_n (scenes/cube86.toml, E 200 Pa and 2 kPa)."""
+        moved = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            M = self.body_mass[b]
+            modulus = ti.cast(self.model.body_lam[b] + 2.0 * self.model.body_mu[b], ti.f64)
+            stiff = M > 0 and modulus * dt * dt * ti.sqrt(0.5 * self.body_inertia[b].trace() / M) >= M
+            R = ti.Matrix.identity(ti.f64, 3)
+            if stiff and self.body_pinned[b] == 0 and self.sleep.awake[b]:
+                R, _ = free_turn(self.body_inertia[b], self.body_spin[b], dt)
+                moved += 1
+            else:
+                R[0, 0] = -1.0                                # not moved
+            self.body_arc[b] = R
+        x, v = ti.static(self.potential.x, self.potential.v)
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(self.model.vertex_count[None] * (moved > 0)):
+            b = self.model.vertex_body[i]
+            if self.model.free[i] > 0 and self.body_arc[b][0, 0] >= 0.0:
+                r = ti.cast(x_n[i], ti.f64) - self.body_centre[b]
+                u = ti.cast((self.body_arc[b] @ r - r) / dt + self.centre_velocity(b), float)
+                x[i] += h * u
+                v[i] += u
+                velocity[i] += u
+                guess[i] += u
+        return moved
+
     @ti.func
     def centre_velocity(self, b):
         c = ti.Vector.zero(ti.f64, 3)

@@ -180,9 +180,15 @@ class ImplicitSolver:
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
+        # backward Euler's first iterate, at x_n, moves a stiff turning body along its turn's
+        # tangent only: from its rigid turn instead (`arc_first_iterate`)
+        arc = newton and corotational and integrator == "backward-euler" and not (ground or contact) and \
+            self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h, dt) > 0
+        if arc:
+            self.newton.from_guess = True                               # v != 0: its damping terms count
         if contact:                                                     # contact: the first iterate is x_n
             self.effects.contact.hold_start(p.x0, p.x, p.v, state_in.x, h)
-        if target.from_history:
+        if target.from_history or arc:
             rotation_ms += self.update_rotations(p.x, corotational)[0]  # R at the first iterate
         if ground:
             self.effects.start_contacts(state_in.x, p.x, h, dt)         # friction's normal forces at x_n
