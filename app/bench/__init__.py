@@ -47,6 +47,8 @@ The parts, in the order a run goes through them:
     report.py       the files: results.md (tables, targets), results.json, and the plot (plot.py)
     direct.py       the direct baseline, an assembled sparse solver outside the engine
     startup.py      what a user waits before the first step
+    contact.py      the pile from 5 to 40 boxes beside a peer, Newton's VBD (peer.py, run in a Python
+                    that has it); how close the bodies came (gaps.py); their rows (contact_report.py)
 
 `main.py bench` itself is app/commands/bench.py.
 """

@@ -56,6 +56,8 @@ class Plan:
     profile: str = ""     # a BOXES bar whose one-solve and default steps get a kernel profile ("": none)
     contact: str = ""     # a scene with contact whose cost is measured, with contact and without ("": none)
     contact_steps: tuple = (40, 20)  # its steps before the timed ones (the bodies land), and the timed ones
+    contact_sizes: tuple = ()        # piles of these many boxes measured the same steps, beside the peer's
+                                     # (app/bench/contact.py)
     quick: bool = False   # too little for the full run's conclusions (frontier, targets, costs under the
                           # timing noise): its report says what it measured and leaves those out
     startup_breakdown: tuple = ()    # (scene, (simulate's options, ...)) whose warm start is broken down
@@ -71,7 +73,8 @@ def full_plan():
     and solver axes compare, and it alone would take longer than all the others together."""
     elastic = [name for name in scenes.builtin_scenes() if scenes.load_scene(name).effects.contact is None]
     return Plan([*elastic, "box1k", "box10k", "box50k"], FULL_CHECKPOINTS, 2, FULL_BUDGET_S, "epcot",
-                "box50k", profile="box50k", contact=PILE, startup_breakdown=startup_breakdown())
+                "box50k", profile="box50k", contact=PILE, contact_sizes=(5, 10, 20, 40),
+                startup_breakdown=startup_breakdown())
 
 
 def startup_breakdown():

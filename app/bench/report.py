@@ -11,6 +11,7 @@ from app.bench.plan import (BASELINE_TOLERANCE, ERROR_GOAL, FULL_BUDGET_S, FULL_
                             MIN_REFERENCE_ORDER, QUICK, QUICK_DURATION, REFERENCE_ORDER, REFERENCE_REFINEMENT,
                             REFERENCE_SETTINGS, SECOND_ORDER, TARGET_SCENE, sci, step_name)
 from app import profile
+from app.bench import contact_report
 from app.bench.plot import numbers, plot
 from app.files import atomic_open
 from fem.implicit.preconditioner import TWO_LEVEL_VERTICES
@@ -422,7 +423,7 @@ def contact_cost(results):
             f"Contact's own kernels (broad phase, step bound, first iterate, lagged friction, stats) take "
             f"{100 * on['share']:.1f} % of the step ({kernels}). The rest of what it costs, "
             f"{on['ms_median'] / off['ms_median']:.1f} times the step without it, is the Newton and CG iterations "
-            "the pairs add (docs/method.md, section 6).", ""]
+            "the pairs add (docs/method.md, section 6).", ""] + (contact_report.markdown(c["scaling"]) if "scaling" in c else [])
 
 
 def direct_split(scene):

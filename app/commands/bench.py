@@ -3,13 +3,15 @@
 The benchmark's parts and what it measures: app/bench/.
 """
 
+import os
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
+import fem
 from app import device, outputs
-from app.bench import startup
+from app.bench import contact, startup
 from app.bench.conclusions import headline
 from app.bench.measure import (STIFF, compare_preconditioners, contact_cost, kernel_profile, machine,
                                measure_scene, stiff_bar)
@@ -70,6 +72,11 @@ def run(args, plan=None):
     if plan.contact:
         print(f"bench: contact's cost on {Path(plan.contact).stem}", file=sys.stderr)
         results["contact"] = contact_cost(plan.contact, plan, args, info)      # with the profiler on too
+    if plan.contact_sizes:
+        print(f"bench: piles of {', '.join(map(str, plan.contact_sizes))} boxes, beside the peer", file=sys.stderr)
+        fem.init(args.arch, args.precision, debug=args.debug)     # the profiler off: the times a user sees
+        results["contact"]["scaling"] = contact.scaling(plan.contact_sizes, *plan.contact_steps,
+                                                        os.environ.get("PEER_PYTHON"))
     write(results, folder, names)
     print("\n".join(([quick_scope(results)] if plan.quick else []) + lines))
     print(f"wrote {folder / names['md']}, {names['json']}, {names['plot']} ({info['bench_minutes']:.1f} min)")
