@@ -33,6 +33,9 @@ LAYER = 4                  # boxes a layer of pile.toml: its four columns
 PERIOD = 3                 # its layers' offsets repeat every three layers, PERIOD_HEIGHT higher
 PERIOD_HEIGHT = 1.35       # m
 PEER_TIMEOUT_S = 3600
+# N/m: the peer's contact penalty, each measured: its softbody_gift example's, and one 20 times stiffer
+# (at the example's, the 20-box pile's bottom boxes sink about 2 cm into the ground)
+PEER_STIFFNESSES = (5e4, 1e6)
 PEER_INSTALL = ("not measured: set PEER_PYTHON to a Python with Newton's `newton` package "
                 "(`python -m venv peer && peer/bin/pip install newton`)")
 
@@ -91,9 +94,10 @@ def ours(scene, warmup, steps):
     return out
 
 
-def peer(scene, warmup, steps, python):
-    """The peer's steps of the scene (app/bench/peer.py, in `python`): ({"ms_median", closeness},
-    what the peer says of itself: its versions, sub-steps, iterations, contact stiffness)."""
+def peer(scene, warmup, steps, python, stiffness):
+    """The peer's steps of the scene (app/bench/peer.py, in `python`) with a contact penalty of
+    `stiffness` N/m: ({"ms_median", closeness}, what the peer says of itself: its versions,
+    sub-steps, iterations)."""
     tets, body = mesh(scene)
     e, material = scene.effects, scene.bodies[0].material
     with tempfile.TemporaryDirectory() as folder:
@@ -101,7 +105,8 @@ def peer(scene, warmup, steps, python):
         np.savez(source, vertices=np.concatenate([b.mesh.vertices for b in scene.bodies]), tets=tets, body=body,
                  dt=scene.solver.dt, warmup=warmup, steps=steps, E=material.E, nu=material.nu,
                  density=material.density, beta=e.beta, gravity=np.array(e.gravity, float), ground=e.ground,
-                 ground_friction=e.friction, distance=e.contact.distance, friction=e.contact.friction)
+                 ground_friction=e.friction, distance=e.contact.distance, friction=e.contact.friction,
+                 contact_stiffness=stiffness)
         run = subprocess.run([python, "-m", "app.bench.peer", str(source), str(target)], cwd=ROOT, check=True,
                              capture_output=True, text=True, timeout=PEER_TIMEOUT_S)
         info = json.loads(run.stdout.splitlines()[-1])      # Warp prints its own lines before
@@ -112,8 +117,8 @@ def peer(scene, warmup, steps, python):
 
 def scaling(sizes, warmup, steps, peer_python=None):
     """{"sizes", "warmup", "steps", "load_average" (at the start and the end), "date", "distance",
-    "ours": [{"bodies", "vertices", "on", "off"}], "peer": {"rows": [{"bodies", "ms_median", closeness}],
-    "setup"}, or a line saying why it is not measured}.
+    "ours": [{"bodies", "vertices", "on", "off"}], "peer": {"rows": [{"bodies", "contact_stiffness",
+    "ms_median", closeness}], "setup"}, or a line saying why it is not measured}.
     Taichi must run (fem.init), its profiler off: these are the times a user sees."""
     out = {"sizes": list(sizes), "warmup": warmup, "steps": steps, "load_average": [os.getloadavg()[0]],
            "date": datetime.date.today().isoformat(), "distance": pile(1).effects.contact.distance}
@@ -121,8 +126,9 @@ def scaling(sizes, warmup, steps, peer_python=None):
                     **ours(pile(n), warmup, steps)} for n in sizes]
     out["peer"] = PEER_INSTALL
     if peer_python:
-        runs = [peer(pile(n), warmup, steps, peer_python) for n in sizes]
-        out["peer"] = {"rows": [{"bodies": n, **row} for n, (row, _) in zip(sizes, runs)], "setup": runs[0][1]}
+        runs = {(n, k): peer(pile(n), warmup, steps, peer_python, k) for n in sizes for k in PEER_STIFFNESSES}
+        out["peer"] = {"rows": [{"bodies": n, "contact_stiffness": k, **row} for (n, k), (row, _) in runs.items()],
+                       "setup": next(iter(runs.values()))[1]}
     out["load_average"].append(os.getloadavg()[0])
     return out
 

@@ -8,8 +8,9 @@ def markdown(scaling):
     """The piles' rows: ours at each size, then ours beside the peer's (or why it is not measured)."""
     rows, peer_runs = scaling["ours"], scaling["peer"]
     low, high = scaling["load_average"]
-    lines = ["### The pile from 5 to 40 boxes, beside a peer", "",
-             f"Piles of {', '.join(map(str, scaling['sizes']))} boxes (examples/pile.toml's first boxes; past its "
+    sizes = scaling["sizes"]
+    lines = [f"### The pile from {sizes[0]} to {sizes[-1]} boxes, beside a peer", "",
+             f"Piles of {', '.join(map(str, sizes[:-1]))} and {sizes[-1]} boxes (examples/pile.toml's first boxes; past its "
              f"20, its layers repeated upward), each {scaling['steps']} steps after {scaling['warmup']} from the "
              f"start, Taichi's profiler off, load average {low:.1f} at the start and {high:.1f} at the end "
              f"({scaling['date']}). Smallest gap: the least distance between two bodies' surfaces over the timed "
@@ -19,29 +20,45 @@ def markdown(scaling):
              "ms/step | contact on / off | smallest gap | sunk |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         on, off = r["on"], r["off"]
-        lines.append(f"| {r['bodies']} | {r['vertices']} | {on['ms_median']:.3g} | {on['newton']:.1f} | "
-                     f"{on['cg']:.0f} | {on['unconverged']} of {scaling['steps']} | {off['ms_median']:.3g} | "
+        lines.append(f"| {r['bodies']} | {r['vertices']} | {ms(on['ms_median'])} | {on['newton']:.1f} | "
+                     f"{on['cg']:.0f} | {on['unconverged']} of {scaling['steps']} | {ms(off['ms_median'])} | "
                      f"{on['ms_median'] / off['ms_median']:.0f} x | {gap(on, scaling['steps'])} | "
                      f"{1e3 * on['sunk']:.2f} mm |")
-    lines += ["", growth("Ours", [(r["bodies"], r["on"]["ms_median"]) for r in rows]), ""]
+    lines += ["", growth("Our", [(r["bodies"], r["on"]["ms_median"]) for r in rows]), ""]
     if isinstance(peer_runs, str):
         return lines + [f"The peer, Newton's VBD: {peer_runs}.", ""]
-    lines += ["| boxes | ms/step, ours | ms/step, peer | smallest gap, ours | smallest gap, peer | sunk, ours | "
-              "sunk, peer |", "|---:|---:|---:|---:|---:|---:|---:|"]
-    for r, p in zip(rows, peer_runs["rows"]):
-        lines.append(f"| {r['bodies']} | {r['on']['ms_median']:.3g} | {p['ms_median']:.3g} | "
-                     f"{gap(r['on'], scaling['steps'])} | {gap(p, scaling['steps'])} | {1e3 * r['on']['sunk']:.2f} mm | "
-                     f"{1e3 * p['sunk']:.2f} mm |")
+    lines += ["| boxes | solver | ms/step | smallest gap | sunk |", "|---:|---|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['bodies']} | ours | {ms(r['on']['ms_median'])} | {gap(r['on'], scaling['steps'])} | "
+                     f"{1e3 * r['on']['sunk']:.2f} mm |")
+        lines += [f"| {p['bodies']} | peer, {stiffness(p['contact_stiffness'])} N/m | {ms(p['ms_median'])} | "
+                  f"{gap(p, scaling['steps'])} | {1e3 * p['sunk']:.2f} mm |"
+                  for p in peer_runs["rows"] if p["bodies"] == r["bodies"]]
+    stiffnesses = dict.fromkeys(p["contact_stiffness"] for p in peer_runs["rows"])
+    for k in stiffnesses:
+        lines += ["", growth(f"The peer's (at {stiffness(k)} N/m)", [(p["bodies"], p["ms_median"])
+                                                                    for p in peer_runs["rows"] if p["contact_stiffness"] == k])]
     s = peer_runs["setup"]
-    return lines + ["", growth("The peer's", [(p["bodies"], p["ms_median"]) for p in peer_runs["rows"]]), "",
-                    f"The peer: Newton {s['newton']}'s VBD with self-contact (Warp {s['warp']}, on the {s['device']}), "
-                    f"the same boxes, steps, gravity, ground and contact distance; each step {s['substeps']} sub-steps "
-                    f"of {s['iterations']} iterations (its softbody_gift example's), contact a penalty of "
-                    f"{s['contact_stiffness']:g} N/m closer than the distance (ours: a barrier), a vertex touching the "
-                    f"ground {1e3 * s['particle_radius']:g} mm above it (ours: at it). Its elasticity is neo-Hookean "
-                    "with our E and nu's Lame parameters (ours: corotational), its damping the stiffness part of ours "
-                    "alone (the mass part has no counterpart), its friction ours (0.3 between boxes, 0.4 on the "
-                    "ground). app/bench/peer.py runs it.", ""]
+    return lines + ["", f"The peer: Newton {s['newton']}'s VBD with self-contact (Warp {s['warp']}, device "
+                    f"{s['device']}), the same boxes, dt, steps, gravity, ground, friction (0.3 between boxes, 0.4 on "
+                    f"the ground) and contact distance; each step {s['substeps']} sub-steps of {s['iterations']} "
+                    "iterations (its softbody_gift example's). Its contact is a penalty, between boxes closer than "
+                    "the contact distance (ours: a barrier) and with the ground from "
+                    f"{1e3 * s['particle_radius']:g} mm above it (ours: a penalty from the ground itself), of "
+                    f"{' or '.join(map(stiffness, stiffnesses))} N/m (its example's, and stiffer). Its "
+                    "elasticity is neo-Hookean with our E and nu's Lame parameters (ours: corotational), its damping "
+                    "the stiffness part of ours alone (the mass part has no counterpart). app/bench/peer.py runs it.",
+                    ""]
+
+
+def ms(value):
+    """A time in ms: three digits, and no exponent past 1000."""
+    return f"{value:.3g}" if value < 1000 else f"{value:.0f}"
+
+
+def stiffness(value):
+    """N/m as 5e4, 1e6."""
+    return f"{value:.0e}".replace("e+0", "e")
 
 
 def gap(row, steps):

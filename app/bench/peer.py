@@ -5,16 +5,18 @@ its own). app/bench/contact.py writes the boxes and runs, from this repository's
 
     PEER_PYTHON -m app.bench.peer IN.npz OUT.npz
 
-IN.npz: vertices (n, 3) m and tets (m, 4) of every box, body (n,) each vertex's box, and the
-scene's settings (see `SETTINGS`). Prints one JSON line, {"ms": [wall ms of each timed step],
-"newton", "warp", "device", "substeps", "iterations", "contact_stiffness"}, and writes OUT.npz:
-positions (steps, n, 3) m after each timed step, measured by app/bench/contact.py as ours are.
+IN.npz: vertices (n, 3) m and tets (m, 4) of every box, body (n,) each vertex's box, the scene's
+settings and the peer's contact stiffness (see `SETTINGS`). Prints one JSON line, {"ms": [wall ms
+of each timed step], "newton", "warp", "device", "substeps", "iterations", "particle_radius"}, and
+writes OUT.npz: positions (steps, n, 3) m after each timed step, which app/bench/contact.py measures
+as it measures ours.
 
-What VBD cannot take as we give it (app/bench/report.py says so beside the numbers): its elasticity
-is neo-Hookean with our E and nu's Lame parameters (ours: corotational); its damping is the stiffness
-part of ours only (k_damp = beta; alpha, the mass part, has no counterpart); contact is a penalty
-(stiffness `CONTACT_STIFFNESS`) acting closer than the contact distance, not a barrier; the ground's
-friction is sqrt(mu_contact mu_shape), so the shape's mu is set to give ours.
+What VBD cannot take as we give it (app/bench/contact_report.py says so beside the numbers): its
+elasticity is neo-Hookean with our E and nu's Lame parameters (ours: corotational); its damping is
+the stiffness part of ours only (k_damp = beta; alpha, the mass part, has no counterpart); its
+contact is a penalty of the stiffness IN.npz gives (N/m, between boxes closer than the contact
+distance and with the ground), not a barrier; its ground friction is sqrt(mu_contact mu_shape), so
+the ground's mu is set to give ours.
 """
 
 import json
@@ -24,12 +26,11 @@ import time
 import numpy as np
 
 SETTINGS = ("dt", "warmup", "steps", "E", "nu", "density", "beta", "gravity", "ground", "ground_friction",
-            "distance", "friction")
+            "distance", "friction", "contact_stiffness")
 SUBSTEPS = 10          # VBD sub-steps of a step: the softbody_gift example's; its self-contact truncates each
                        # vertex's move between detections to about half the detection reach, so one
                        # 0.02 s sub-step would hold a box falling at 4 m/s to a fraction of that speed
 ITERATIONS = 15        # VBD iterations a sub-step, the softbody_gift example's
-CONTACT_STIFFNESS = 5e4   # N/m, the penalty of self-contact and the ground (softbody_gift's)
 CONTACT_DAMPING = 0.5     # the softbody_gift example's
 PARTICLE_RADIUS = 1e-3    # m: a vertex touches the ground this far above it (ours: at the ground)
 
@@ -69,7 +70,7 @@ def build(data):
                               k_mu=mu, k_lambda=lam, k_damp=float(s["beta"]), particle_radius=PARTICLE_RADIUS)
     builder.color()
     model = builder.finalize()
-    model.soft_contact_ke, model.soft_contact_kd = CONTACT_STIFFNESS, CONTACT_DAMPING
+    model.soft_contact_ke, model.soft_contact_kd = float(s["contact_stiffness"]), CONTACT_DAMPING
     model.soft_contact_mu = float(s["friction"])
     solver = newton.solvers.SolverVBD(model, iterations=ITERATIONS, particle_enable_self_contact=True,
                                       particle_self_contact_margin=float(s["distance"]),
@@ -107,8 +108,7 @@ def run(data):
         ms.append(1e3 * (time.perf_counter() - start))
         positions.append(state.particle_q.numpy().astype(np.float64))
     info = {"ms": ms, "newton": newton.__version__, "warp": wp.config.version, "device": str(wp.get_device()),
-            "substeps": SUBSTEPS, "iterations": ITERATIONS, "contact_stiffness": CONTACT_STIFFNESS,
-            "particle_radius": PARTICLE_RADIUS}
+            "substeps": SUBSTEPS, "iterations": ITERATIONS, "particle_radius": PARTICLE_RADIUS}
     return info, np.array(positions)
 
 
