@@ -17,6 +17,7 @@ import json
 import os
 import statistics
 import subprocess
+import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -122,10 +123,14 @@ def scaling(sizes, warmup, steps, peer_python=None):
     Taichi must run (fem.init), its profiler off: these are the times a user sees."""
     out = {"sizes": list(sizes), "warmup": warmup, "steps": steps, "load_average": [os.getloadavg()[0]],
            "date": datetime.date.today().isoformat(), "distance": pile(1).effects.contact.distance}
-    out["ours"] = [{"bodies": n, "vertices": sum(len(b.mesh.vertices) for b in pile(n).bodies),
-                    **ours(pile(n), warmup, steps)} for n in sizes]
+    out["ours"] = []
+    for n in sizes:
+        print(f"contact: a pile of {n} boxes", file=sys.stderr)
+        out["ours"].append({"bodies": n, "vertices": sum(len(b.mesh.vertices) for b in pile(n).bodies),
+                            **ours(pile(n), warmup, steps)})
     out["peer"] = PEER_INSTALL
     if peer_python:
+        print(f"contact: the peer, {len(sizes) * len(PEER_STIFFNESSES)} runs", file=sys.stderr)
         runs = {(n, k): peer(pile(n), warmup, steps, peer_python, k) for n in sizes for k in PEER_STIFFNESSES}
         out["peer"] = {"rows": [{"bodies": n, "contact_stiffness": k, **row} for (n, k), (row, _) in runs.items()],
                        "setup": next(iter(runs.values()))[1]}
@@ -152,6 +157,7 @@ def refresh_docs():
     results["contact"] = contact_cost(plan.contact, plan, args, info)
     fem.init(args.arch, args.precision)                     # the profiler off again
     results["contact"]["scaling"] = scaling(plan.contact_sizes, *plan.contact_steps, os.environ.get("PEER_PYTHON"))
+    results["plan"]["contact_sizes"] = list(plan.contact_sizes)
     with atomic_open(path) as f:
         json.dump(results, f, indent=1)
     with atomic_open(report.DOCS / report.DOCS_FILES["md"]) as f:
