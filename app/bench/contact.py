@@ -131,9 +131,15 @@ def scaling(sizes, warmup, steps, peer_python=None):
     out["peer"] = PEER_INSTALL
     if peer_python:
         print(f"contact: the peer, {len(sizes) * len(PEER_STIFFNESSES)} runs", file=sys.stderr)
-        runs = {(n, k): peer(pile(n), warmup, steps, peer_python, k) for n in sizes for k in PEER_STIFFNESSES}
-        out["peer"] = {"rows": [{"bodies": n, "contact_stiffness": k, **row} for (n, k), (row, _) in runs.items()],
-                       "setup": next(iter(runs.values()))[1]}
+        try:
+            runs = {(n, k): peer(pile(n), warmup, steps, peer_python, k) for n in sizes for k in PEER_STIFFNESSES}
+        except subprocess.CalledProcessError as failed:      # one line of why, and the rest still reported
+            out["peer"] = f"not measured: {peer_python} -m app.bench.peer failed ({failed.stderr.strip()[-300:]})"
+        except subprocess.TimeoutExpired:
+            out["peer"] = f"not measured: the peer ran past {PEER_TIMEOUT_S} s"
+        else:
+            out["peer"] = {"rows": [{"bodies": n, "contact_stiffness": k, **row} for (n, k), (row, _) in runs.items()],
+                           "setup": next(iter(runs.values()))[1]}
     out["load_average"].append(os.getloadavg()[0])
     return out
 

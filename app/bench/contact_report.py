@@ -4,6 +4,12 @@ peer's (app/bench/contact.py measures them)."""
 import numpy as np
 
 
+def piles(results):
+    """The piles' rows of a benchmark's results ([] when it did not measure them)."""
+    scaling = results.get("contact", {}).get("scaling")
+    return markdown(scaling) if scaling else []
+
+
 def markdown(scaling):
     """The piles' rows: ours at each size, then ours beside the peer's (or why it is not measured)."""
     rows, peer_runs = scaling["ours"], scaling["peer"]
