@@ -65,12 +65,12 @@ def test_the_gaps_are_distances_between_two_bodies_surfaces():
     x0 = cube.vertices - cube.vertices.min(axis=0) + (0, 1, 0)
     width = np.ptp(x0[:, 0])
     x1 = x0 + (width + 0.003, 0.05, 0)
-    pile = gaps.Pile(np.concatenate([cube.tets, cube.tets + len(x0)]), np.repeat([0, 1], len(x0)))
-    measured = pile.measure(np.concatenate([x0, x1]), ground=1.01)
+    surfaces = gaps.Surfaces(np.concatenate([cube.tets, cube.tets + len(x0)]), np.repeat([0, 1], len(x0)))
+    measured = surfaces.measure(np.concatenate([x0, x1]), ground=1.01)
     assert measured["gap"] == pytest.approx(0.003) and not measured["crossed"]
     assert measured["sunk"] == pytest.approx(0.01)
-    assert pile.measure(np.concatenate([x0, x1 - (0.005, 0, 0)]), ground=0)["crossed"]
-    far = pile.measure(np.concatenate([x0, x1 + (1, 0, 0)]), ground=0)
+    assert surfaces.measure(np.concatenate([x0, x1 - (0.005, 0, 0)]), ground=0)["crossed"]
+    far = surfaces.measure(np.concatenate([x0, x1 + (1, 0, 0)]), ground=0)
     assert far == {"gap": None, "crossed": False, "sunk": 0.0}
 
 

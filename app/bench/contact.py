@@ -26,7 +26,7 @@ import numpy as np
 
 import fem
 import scenes
-from app.bench.gaps import Pile
+from app.bench.gaps import Surfaces
 from app.bench.plan import PILE
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -63,11 +63,11 @@ def mesh(scene):
             np.repeat(np.arange(len(counts)), counts))
 
 
-def closeness(pile, positions, ground):
+def closeness(surfaces, positions, ground):
     """{"gap": the smallest over the steps (m, None if no two bodies came near), "crossed_steps": the
     steps with a vertex inside another body, "sunk": the deepest under the ground (m)} of
     `positions` (steps, n, 3)."""
-    each = [pile.measure(x, ground) for x in positions]
+    each = [surfaces.measure(x, ground) for x in positions]
     gaps = [m["gap"] for m in each if m["gap"] is not None]
     return {"gap": min(gaps) if gaps else None, "crossed_steps": sum(m["crossed"] for m in each),
             "sunk": max(m["sunk"] for m in each)}
@@ -90,7 +90,7 @@ def ours(scene, warmup, steps):
                     "cg": float(np.mean([row["solver_iters"] for row in rows])),
                     "unconverged": sum(not row["converged"] for row in rows)}
         if effect is not None:
-            out[key].update(closeness(Pile(*mesh(scene)), np.array(positions), scene.effects.ground))
+            out[key].update(closeness(Surfaces(*mesh(scene)), np.array(positions), scene.effects.ground))
         del sim
     return out
 
@@ -113,7 +113,7 @@ def peer(scene, warmup, steps, python, stiffness):
         info = json.loads(run.stdout.splitlines()[-1])      # Warp prints its own lines before
         positions = np.load(target)["positions"]
     ms = info.pop("ms")
-    return {"ms_median": statistics.median(ms), **closeness(Pile(tets, body), positions, e.ground)}, info
+    return {"ms_median": statistics.median(ms), **closeness(Surfaces(tets, body), positions, e.ground)}, info
 
 
 def scaling(sizes, warmup, steps, peer_python=None):

@@ -88,16 +88,15 @@ def by_body(items, body):
     return [items[body[first] == b] for b in range(body.max() + 1)]
 
 
-class Pile:
+class Surfaces:
     """The surfaces of a pile's bodies, to measure how close they come (gap, crossed, sunk)."""
 
     def __init__(self, tets, body):
         """tets (m, 4) and body (n,), each vertex's body: the pile's mesh, vertex ids global."""
-        self.tets, self.body = tets, body
-        self.triangles, self.edges = surface(tets)
+        triangles, edges = surface(tets)
         self.vertices_of = by_body(np.arange(len(body)), body)
-        self.triangles_of = by_body(self.triangles, body)
-        self.edges_of = by_body(self.edges, body)
+        self.triangles_of = by_body(triangles, body)
+        self.edges_of = by_body(edges, body)
         self.tets_of = by_body(tets, body)
 
     def near_pairs(self, x):
