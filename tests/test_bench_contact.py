@@ -16,8 +16,9 @@ from app.bench.plan import PILE, full_plan
 
 SCALING = {"sizes": [5, 40], "warmup": 40, "steps": 20, "load_average": [1.1, 1.3], "date": "2026-11-29",
            "distance": 0.01,
-           "ours": [{"bodies": 5, "vertices": 135, "on": {"ms_median": 70.0, "newton": 7.5, "cg": 97.0, "unconverged": 4,
-                                                        "gap": 0.0042, "crossed_steps": 0, "sunk": 0.0012},
+           "ours": [{"bodies": 5, "vertices": 135, "on": {"ms_median": 70.0, "newton": 7.5, "cg": 97.0,
+                                                        "unconverged": 4, "gap": 0.0042, "crossed_steps": 0,
+                                                        "sunk": 0.0012},
                      "off": {"ms_median": 3.5, "newton": 2.0, "cg": 10.0, "unconverged": 0}},
                     {"bodies": 40, "vertices": 1080, "on": {"ms_median": 1120.0, "newton": 19.0, "cg": 1500.0,
                                                           "unconverged": 12, "gap": None, "crossed_steps": 2,

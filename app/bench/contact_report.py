@@ -16,14 +16,14 @@ def markdown(scaling):
     low, high = scaling["load_average"]
     sizes = scaling["sizes"]
     lines = [f"### The pile from {sizes[0]} to {sizes[-1]} boxes, beside a peer", "",
-             f"Piles of {', '.join(map(str, sizes[:-1]))} and {sizes[-1]} boxes (examples/pile.toml's first boxes; past its "
-             f"20, its layers repeated upward), each {scaling['steps']} steps after {scaling['warmup']} from the "
-             f"start, Taichi's profiler off, load average {low:.1f} at the start and {high:.1f} at the end "
-             f"({scaling['date']}). Smallest gap: the least distance between two bodies' surfaces over the timed "
-             f"steps (the contact distance is {1e3 * scaling['distance']:g} mm); sunk: the deepest vertex under "
-             "the ground.", "",
+             f"Piles of {', '.join(map(str, sizes[:-1]))} and {sizes[-1]} boxes (examples/pile.toml's first boxes; "
+             f"past its 20, its layers repeated upward), each {scaling['steps']} steps after {scaling['warmup']} "
+             f"from the start, on the machine above, Taichi's profiler off, load average {low:.1f} at the start "
+             f"and {high:.1f} at the end ({scaling['date']}). Smallest gap: the least distance between two "
+             "bodies' surfaces over the timed steps (the contact distance is "
+             f"{1e3 * scaling['distance']:g} mm); sunk: the deepest vertex under the ground.", "",
              "| boxes | vertices | ms/step | Newton it./step | CG it./step | steps not converged | contact off, "
-             "ms/step | contact on / off | smallest gap | sunk |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "ms/step | contact on / off | smallest gap | sunk |", "|---:" * 10 + "|"]
     for r in rows:
         on, off = r["on"], r["off"]
         lines.append(f"| {r['bodies']} | {r['vertices']} | {ms(on['ms_median'])} | {on['newton']:.1f} | "
@@ -42,8 +42,8 @@ def markdown(scaling):
                   for p in peer_runs["rows"] if p["bodies"] == r["bodies"]]
     stiffnesses = dict.fromkeys(p["contact_stiffness"] for p in peer_runs["rows"])
     for k in stiffnesses:
-        lines += ["", growth(f"The peer's (at {stiffness(k)} N/m)", [(p["bodies"], p["ms_median"])
-                                                                    for p in peer_runs["rows"] if p["contact_stiffness"] == k])]
+        costs = [(p["bodies"], p["ms_median"]) for p in peer_runs["rows"] if p["contact_stiffness"] == k]
+        lines += ["", growth(f"The peer's (at {stiffness(k)} N/m)", costs)]
     s = peer_runs["setup"]
     return lines + ["", f"The peer: Newton {s['newton']}'s VBD with self-contact (Warp {s['warp']}, device "
                     f"{s['device']}), the same boxes, dt, steps, gravity, ground, friction (0.3 between boxes, 0.4 on "
