@@ -152,7 +152,6 @@ def refresh_docs():
     from app.bench import report
     from app.bench.measure import contact_cost, machine
     from app.bench.plan import full_plan
-    from app.files import atomic_open
 
     plan = full_plan()
     path = report.DOCS / report.DOCS_FILES["json"]
@@ -164,10 +163,7 @@ def refresh_docs():
     fem.init(args.arch, args.precision)                     # the profiler off again
     results["contact"]["scaling"] = scaling(plan.contact_sizes, *plan.contact_steps, os.environ.get("PEER_PYTHON"))
     results["plan"]["contact_sizes"] = list(plan.contact_sizes)
-    with atomic_open(path) as f:
-        json.dump(results, f, indent=1)
-    with atomic_open(report.DOCS / report.DOCS_FILES["md"]) as f:
-        f.write(report.markdown(results))
+    report.write(results, report.DOCS, {"json": report.DOCS_FILES["json"], "md": report.DOCS_FILES["md"]})
 
 
 if __name__ == "__main__":

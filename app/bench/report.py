@@ -437,14 +437,14 @@ def direct_split(scene):
     return "Direct steps, ms (medians): " + "; ".join(parts) + "."
 
 
-def write(results, out, names=RESULT_FILES):
-    out = Path(out)
-    with atomic_open(out / names["json"]) as f:
+def write(results, out=DOCS, names=RESULT_FILES):
+    with atomic_open(Path(out) / names["json"]) as f:
         json.dump(results, f, indent=1)
-    with atomic_open(out / names["md"]) as f:
+    with atomic_open(Path(out) / names["md"]) as f:
         f.write(markdown(results))
-    with atomic_open(out / names["plot"], "wb") as f:
-        plot(results, f)
+    if "plot" in names:                       # a refresh of one section leaves the plot as it was
+        with atomic_open(Path(out) / names["plot"], "wb") as f:
+            plot(results, f)
     if "numbers" in names:
-        with atomic_open(out / names["numbers"]) as f:
-            json.dump(numbers(results, out / names["json"]), f, indent=1)
+        with atomic_open(Path(out) / names["numbers"]) as f:
+            json.dump(numbers(results, Path(out) / names["json"]), f, indent=1)

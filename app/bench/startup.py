@@ -214,7 +214,6 @@ def refresh_docs():
     import fem
     from app.bench import report
     from app.bench.plan import full_plan
-    from app.files import atomic_open
 
     plan = full_plan()
     path = report.DOCS / report.DOCS_FILES["json"]
@@ -225,10 +224,7 @@ def refresh_docs():
     start.update(view_seconds(plan.startup))
     start["breakdown"] = [breakdown(scene, options) for scene, options in plan.startup_breakdown]
     results["startup"] = start
-    with atomic_open(path) as f:
-        json.dump(results, f, indent=1)
-    with atomic_open(report.DOCS / report.DOCS_FILES["md"]) as f:
-        f.write(report.markdown(results))
+    report.write(results, report.DOCS, {"json": report.DOCS_FILES["json"], "md": report.DOCS_FILES["md"]})
 
 
 if __name__ == "__main__":
