@@ -228,21 +228,15 @@ class Fallback:
         moved = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            M = self.body_mass[b]
-            modulus = ti.cast(self.model.body_lam[b] + 2.0 * self.model.body_mu[b], ti.f64)
-            stiff = M > 0 and modulus * dt * dt * ti.sqrt(0.5 * self.body_inertia[b].trace() / M) >= M
-            R = ti.Matrix.identity(ti.f64, 3)
-            if stiff and self.body_pinned[b] == 0 and self.sleep.awake[b]:
+            if self.stiff_turn(b, dt):
                 R, _ = free_turn(self.body_inertia[b], self.body_spin[b], dt)
+                self.body_arc[b] = R
                 moved += 1
-            else:
-                R[0, 0] = -1.0                                # not moved
-            self.body_arc[b] = R
         x, v = ti.static(self.potential.x, self.potential.v)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None] * (moved > 0)):
             b = self.model.vertex_body[i]
-            if self.model.free[i] > 0 and self.body_arc[b][0, 0] >= 0.0:
+            if self.model.free[i] > 0 and self.stiff_turn(b, dt):
                 r = ti.cast(x_n[i], ti.f64) - self.body_centre[b]
                 u = ti.cast((self.body_arc[b] @ r - r) / dt + self.centre_velocity(b), float)
                 x[i] += h * u
@@ -250,6 +244,14 @@ class Fallback:
                 velocity[i] += u
                 guess[i] += u
         return moved
+
+    @ti.func
+    def stiff_turn(self, b, dt):
+        """Body b takes `arc_first_iterate`: free, awake, and too stiff for dt to follow."""
+        M = self.body_mass[b]
+        modulus = ti.cast(self.model.body_lam[b] + 2.0 * self.model.body_mu[b], ti.f64)
+        return M > 0 and self.body_pinned[b] == 0 and self.sleep.awake[b] != 0 and \
+            modulus * dt * dt * ti.sqrt(0.5 * self.body_inertia[b].trace() / M) >= M
 
     @ti.func
     def centre_velocity(self, b):
