@@ -442,5 +442,6 @@ class Newton:
         change = ti.cast(0.0, ti.f64)
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            change += self.body_change[b] / (tolerance * tolerance * self.body_momentum[b] + self.body_speed_floor[b])
+            floor = self.body_speed_floor[b] * self.potential.body_far[b]     # eps D / h, D >= L (potential.py)
+            change += self.body_change[b] / (tolerance * tolerance * self.body_momentum[b] + floor)
         return change

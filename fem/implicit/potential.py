@@ -31,7 +31,11 @@ Fields (n vertices, bodies of the capacity):
     body_gradient (bodies,)   |grad_b E|^2, (N s)^2
     body_scale (bodies,)  s_b^2 at the last iterate: the size of its terms there, (N s)^2
     body_momentum (bodies,)   |M v^|_b^2, (N s)^2
-    body_floor (bodies,)  round-off floor of |grad_b|^2, (N s)^2
+    body_floor (bodies,)  round-off floor of |grad_b|^2 this step, (N s)^2: body_near_floor times body_far
+    body_near_floor (bodies,)  the floor of a body within its own size L of the origin (Model.body_floor)
+    body_size_sq (bodies,)    L^2, m^2
+    body_far (bodies,)    max(1, D^2 / L^2), D the body's root-mean-square distance from the origin at the
+                          step's first iterate: positions carry round-off relative to D, not to L
     body_weight (bodies,) 1 / (tol^2 s_b^2 + floor_b): weights of the residuals' norm
     relative ()           max_b |grad_b|^2 / s_b^2 at the last iterate: the squared relative
                           residual, with no floor (what StepInfo.residual reports)
@@ -82,6 +86,9 @@ class IncrementalPotential:
         self.body_scale = ti.field(ti.f64, nb)
         self.body_momentum = ti.field(ti.f64, nb)
         self.body_floor = ti.field(ti.f64, nb)
+        self.body_near_floor = ti.field(ti.f64, nb)
+        self.body_size_sq = ti.field(ti.f64, nb)
+        self.body_far = ti.field(ti.f64, nb)
         self.body_weight = ti.field(float, nb)
         self.relative = ti.field(ti.f64, ())
         self.rate_from_start = ti.field(ti.i32, ())       # 1: backward Euler's damping (`turn_rate`)
@@ -299,14 +306,25 @@ class IncrementalPotential:
         momentum = ti.cast(self.effects.filtered(i, m * v0[i]).norm_sqr(), ti.f64)
         scale = momentum + ti.cast(self.effects.filtered(i, tets).norm_sqr() + self.effects.filtered(i, g).norm_sqr(),
                                    ti.f64)
+        reach = ti.cast(m * x[i].norm_sqr(), ti.f64) * data[4]      # the step's first iterate: where it is
         return ti.Vector([ti.cast(self.effects.filtered(i, rhs).norm_sqr(), ti.f64), momentum, scale,
-                          0, 0, 0, 0, 0, 0, 0], ti.f64)
+                          reach, ti.cast(m, ti.f64), 0, 0, 0, 0, 0], ti.f64)
 
     @ti.func
     def store_gradient(self, b, total, data: ti.template()):
         self.body_gradient[b], self.body_scale[b] = total[0], total[2]
         if data[4]:                                  # the step's first iterate
             self.body_momentum[b] = total[1]
+            # A float32 position x carries a round-off of eps |x|: a body D from the origin has D / L
+            # times the strain noise of one at the origin (L its size), and its gradient and velocity
+            # changes that much more noise. Ten cubes 3 m apart (tests/test_energy.py's ground drops):
+            # the one 21 m out, within its tolerance alone at the origin, jittered above the floors of
+            # its size for 20 Newton iterations a step, and held every other body's step with it.
+            far = ti.cast(1.0, ti.f64)
+            if total[4] > 0 and self.body_size_sq[b] > 0:
+                far = ti.max(far, total[3] / (total[4] * self.body_size_sq[b]))
+            self.body_far[b] = far
+            self.body_floor[b] = self.body_near_floor[b] * far
 
     @ti.func
     def gradient_norm(self, tolerance, first, moving):

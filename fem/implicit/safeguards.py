@@ -358,7 +358,7 @@ class Safeguards(Fallback, InternalMove):
                 falls += 1
                 # a body at rest (no gravity: terms of size 0) whose energy rose by round-off
                 # takes the rigid step too, which keeps it still, but no solve failed there
-                if excess > allowance + self.body_quiet[b]:
+                if excess > allowance + self.body_quiet[b] * self.potential.body_far[b]:
                     trimmed += 1
                 self.body_speed[b] = self.slowed(b, energy)
             if self.body_fallback[b] == 0 and K + spin > 0.0 and ti.abs(excess) > allowance:   # round-off is not chased

@@ -367,15 +367,19 @@ class ImplicitSolver:
 
     def write_bodies(self):
         """The per-body inputs (pinned, awake, round-off floors) into their parts' fields, in one kernel."""
-        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np, self.quiet_np)
+        size = np.array([b.size for b in self.model.bodies], np.float64)
+        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np, self.quiet_np, size)
 
     @ti.kernel
     def _write_bodies(self, pinned: ti.types.ndarray(), awake: ti.types.ndarray(),
-                      floor: ti.types.ndarray(), speed_floor: ti.types.ndarray(), quiet: ti.types.ndarray()):
+                      floor: ti.types.ndarray(), speed_floor: ti.types.ndarray(), quiet: ti.types.ndarray(),
+                      size: ti.types.ndarray()):
         ti.loop_config(serialize=True)
         for b in range(pinned.shape[0]):
             self.safeguards.body_pinned[b], self.sleep.awake[b] = pinned[b], awake[b]
-            self.potential.body_floor[b], self.newton.body_speed_floor[b] = floor[b], speed_floor[b]
+            self.potential.body_near_floor[b], self.newton.body_speed_floor[b] = floor[b], speed_floor[b]
+            self.potential.body_floor[b], self.potential.body_far[b] = floor[b], 1.0
+            self.potential.body_size_sq[b] = size[b] ** 2
             self.safeguards.body_quiet[b] = quiet[b]
 
     @ti.kernel
