@@ -298,6 +298,7 @@ class ImplicitSolver:
         self.pinned_np = np.array([(model.free_np[b.vertices] == 0).any() for b in model.bodies], np.int32)
         self.awake_np = np.ones(len(model.bodies), np.int32)
         self.floor_np = self.speed_floor_np = self.quiet_np = np.zeros(len(model.bodies))   # set by refresh
+        self.size_np = np.array([b.size for b in model.bodies], np.float64)   # L, m: the floors' size
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioning.load()
         self.linear.load()
@@ -367,8 +368,8 @@ class ImplicitSolver:
 
     def write_bodies(self):
         """The per-body inputs (pinned, awake, round-off floors) into their parts' fields, in one kernel."""
-        size = np.array([b.size for b in self.model.bodies], np.float64)
-        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np, self.quiet_np, size)
+        self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np, self.quiet_np,
+                           self.size_np)
 
     @ti.kernel
     def _write_bodies(self, pinned: ti.types.ndarray(), awake: ti.types.ndarray(),
