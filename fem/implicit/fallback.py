@@ -210,40 +210,76 @@ class Fallback:
 
     @ti.kernel
     def arc_first_iterate(self, x_n: ti.template(), velocity: ti.template(), guess: ti.template(), h: float,
-                          dt: float) -> ti.i32:
-        """The first Newton iterate, at x_n (backward Euler's v = 0), moved to the rigid motion
-        over dt of each free body too stiff for dt to follow: its centre's v_c dt and the turn
-        `free_turn` gives its start's spin and inertia (`rigid_motion` BEFORE the step); x, v (the
-        potential's iterate) and Newton's velocity and guess move by the same u. Returns how many
-        bodies moved.
+                          dt: float, from_guess: ti.i32) -> ti.i32:
+        """The first Newton iterate moved to the rigid motion over dt of each free body too stiff
+        for dt to follow: its shape at x_n turned by `free_turn` of its start's spin and inertia
+        (`rigid_motion` BEFORE the step). Backward Euler's iterate is at x_n (v = 0): its centre
+        moves by v_c dt. A multistep rule's iterate is its guess, x = x^ + h v: its centre stays
+        the guess's, and only its shape is turned. x, v (the potential's iterate) and Newton's
+        velocity and guess move by the same u. Returns how many bodies moved.
 
         From x_n, Newton's first step moves a turning body along its turn's tangent, which
-        stretches every tet by (omega dt)^2 / 2: Newton's quadratic model sees none of that, and
-        a stiff body answers it with (lam + 2 mu) (omega dt)^2 / 2 of stress. A spinning cube at
-        E 1e9, nu 0.49995 (3 rad/s, dt 0.02 s, f64) stalled at a relative residual of 1 for 20
-        iterations every step; from its arc it takes 2. Stiff means that sound crosses the body
-        within about a step, (lam + 2 mu) dt^2 r >= M with r its radius of gyration (c dt >= 2.8 r
-        for a cube): a soft body deforms through the step, and from its rigid motion Newton took
-        more iterations than from x_n (scenes/cube86.toml, E 200 Pa and 2 kPa)."""
+        stretches every tet by (omega dt)^2 / 2, and so does a guess extrapolated linearly from
+        v_n (v_n's own turn is a tangent, and BDF2's x^ a chord): Newton's quadratic model sees
+        none of that, and a stiff body answers it with (lam + 2 mu) (omega dt)^2 / 2 of stress. A
+        spinning cube at E 1e9, nu 0.49995 (3 rad/s, dt 0.02 s, f64) stalled at a relative
+        residual of 1 for 20 iterations every step; from its arc it takes 2. Stiff means that
+        sound crosses the body within about a step, (lam + 2 mu) dt^2 r >= M with r its radius of
+        gyration (c dt >= 2.8 r for a cube): a soft body deforms through the step, and from its
+        rigid motion Newton took more iterations than from x_n (scenes/cube86.toml, E 200 Pa and
+        2 kPa)."""
+        x, v = ti.static(self.potential.x, self.potential.v)
+        stiff = 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            stiff += self.stiff_turn(b, dt)
+        self.sleep.sums.reduce(self.iterate_centre, self.store_iterate_centre, (x, x_n), int(stiff > 0))
         moved = 0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            if self.stiff_turn(b, dt):
+            self.body_arc[b] = ti.Matrix.identity(ti.f64, 3)
+            if self.arc_turn(b, dt):
                 R, _ = free_turn(self.body_inertia[b], self.body_spin[b], dt)
                 self.body_arc[b] = R
                 moved += 1
-        x, v = ti.static(self.potential.x, self.potential.v)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None] * (moved > 0)):
             b = self.model.vertex_body[i]
-            if self.model.free[i] > 0 and self.stiff_turn(b, dt):
+            if self.model.free[i] > 0 and self.arc_turn(b, dt):
                 r = ti.cast(x_n[i], ti.f64) - self.body_centre[b]
                 u = ti.cast((self.body_arc[b] @ r - r) / dt + self.centre_velocity(b), float)
+                if from_guess:                            # x = x^ + h v: to the guess's centre, turned
+                    c = self.body_arc_centre[b]
+                    turned = ti.Vector([c[0], c[1], c[2]]) + self.body_arc[b] @ r
+                    u = ti.cast((turned - ti.cast(x[i], ti.f64)) / h, float)
                 x[i] += h * u
                 v[i] += u
                 velocity[i] += u
                 guess[i] += u
         return moved
+
+    @ti.func
+    def iterate_centre(self, i, b, data: ti.template()):
+        """Free vertex i's (m x, m) at the iterate x, for its body's centre there, and 1 where it is
+        pressed into the ground at x_n."""
+        x, x_n = ti.static(data[0], data[1])
+        m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
+        y = ti.cast(x[i], ti.f64)
+        return ti.Vector([m * y[0], m * y[1], m * y[2], m, ti.cast(self.effects.pressed(x_n[i]), ti.f64),
+                          0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def store_iterate_centre(self, b, total, data: ti.template()):
+        self.body_arc_centre[b] = ti.Vector([0.0, 0.0, 0.0, total[4]], ti.f64)
+        if total[3] > 0:
+            self.body_arc_centre[b] = ti.Vector([total[0] / total[3], total[1] / total[3], total[2] / total[3],
+                                                 total[4]], ti.f64)
+
+    @ti.func
+    def arc_turn(self, b, dt):
+        """Body b takes `arc_first_iterate`: too stiff for dt to follow (`stiff_turn`), and not
+        pressed into the ground at the step's start (the ground, not its spin, decides its motion)."""
+        return self.stiff_turn(b, dt) and self.body_arc_centre[b][3] == 0.0
 
     @ti.func
     def stiff_turn(self, b, dt):

@@ -31,6 +31,8 @@ Fields (bodies of the capacity; energies summed in float64):
     body_spin (bodies, 3)        its angular momentum about the centre (kg m^2/s), then omega (1/s)
     body_inertia (bodies, 3x3)   its inertia tensor about the centre, kg m^2 (a rigid step: its turn)
     body_arc (bodies, 3x3)       its rigid turn over the step (`arc_first_iterate`)
+    body_arc_centre (bodies, 4)  m: its centre at the step's first iterate, and its vertices pressed
+                                 into the ground at x_n (`arc_first_iterate`)
     body_pinned (bodies,)        1: the body has pinned vertices
     body_lowest (bodies,)        J: the lowest total energy it has had since the band started
     body_scale (bodies,)         J: the largest sum of its terms' sizes since then (-1: no band yet)
@@ -91,6 +93,7 @@ class Safeguards(Fallback, InternalMove):
         self.body_spin = ti.Vector.field(3, ti.f64, nb)
         self.body_inertia = ti.Matrix.field(3, 3, ti.f64, nb)
         self.body_arc = ti.Matrix.field(3, 3, ti.f64, nb)
+        self.body_arc_centre = ti.Vector.field(4, ti.f64, nb)
         self.body_pinned = ti.field(ti.i32, nb)
         self.body_lowest = ti.field(ti.f64, nb)
         self.body_scale = ti.field(ti.f64, nb)

@@ -180,10 +180,11 @@ class ImplicitSolver:
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
-        # backward Euler's first iterate, at x_n, moves a stiff turning body along its turn's
-        # tangent only: from its rigid turn instead (`arc_first_iterate`)
-        arc = newton and corotational and integrator == "backward-euler" and not (ground or contact) and \
-            self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h, dt) > 0
+        # the first iterate (backward Euler's at x_n, a multistep rule's guess) moves a stiff turning
+        # body along its turn's tangent only: from its rigid turn instead (`arc_first_iterate`)
+        arc = newton and corotational and not contact and \
+            self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h, dt,
+                                              int(target.from_history)) > 0
         if arc:
             self.newton.from_guess = True                               # v != 0: its damping terms count
         if contact:                                                     # contact: the first iterate is x_n
