@@ -283,11 +283,14 @@ class Fallback:
 
     @ti.func
     def stiff_turn(self, b, dt):
-        """Body b takes `arc_first_iterate`: free, awake, and too stiff for dt to follow."""
+        """Body b takes `arc_first_iterate`: free, awake, too stiff for dt to follow, and no further
+        from its rest shape than twice its size L in its radius of gyration r (a body a huge impulse
+        stretched to 1000 L moves as no rigid body; Model.any_stiff bounds r by that 2 L)."""
         M = self.body_mass[b]
         modulus = ti.cast(self.model.body_lam[b] + 2.0 * self.model.body_mu[b], ti.f64)
+        r2 = 0.5 * self.body_inertia[b].trace() / M
         return M > 0 and self.body_pinned[b] == 0 and self.sleep.awake[b] != 0 and \
-            modulus * dt * dt * ti.sqrt(0.5 * self.body_inertia[b].trace() / M) >= M
+            r2 <= 4.0 * self.potential.body_size_sq[b] and modulus * dt * dt * ti.sqrt(r2) >= M
 
     @ti.func
     def centre_velocity(self, b):

@@ -182,7 +182,7 @@ class ImplicitSolver:
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
         # the first iterate (backward Euler's at x_n, a multistep rule's guess) moves a stiff turning
         # body along its turn's tangent only: from its rigid turn instead (`arc_first_iterate`)
-        arc = newton and corotational and not contact and \
+        arc = newton and corotational and not contact and model.any_stiff(dt) and \
             self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h, dt,
                                               int(target.from_history)) > 0
         if arc:
