@@ -96,7 +96,7 @@ def test_section_3_cube86_towards_incompressible(nu):
 
 # Section 4: cube86 at nu 0.4999, 50 steps at each dt: the Newton step's total energy after its first
 # step and at the end (J); the one-solve step's largest energy passes BLOWN_UP J (a blow-up: only that repeats)
-NEWTON_FIRST, NEWTON_END = 1.9, {0.02: 1.56, 0.1: 0.71, 0.5: 0.76}
+NEWTON_FIRST, NEWTON_END = 1.9, {0.02: 1.56, 0.1: 0.71, 0.5: 0.84}
 BLOWN_UP, NEWTON_SPREAD = 1e9, 0.05
 
 
