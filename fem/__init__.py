@@ -19,7 +19,9 @@ from fem import environment  # noqa: E402
 environment.prepare()                                       # also before taichi is first imported
 
 from fem.errors import FemError  # noqa: E402
-from fem.runtime import init  # noqa: E402
+from fem.runtime import init, quick_declarations  # noqa: E402
+
+quick_declarations()                                        # before any module declares a kernel
 from fem.scene import Scene  # noqa: E402
 from fem.simulation import Simulation  # noqa: E402
 

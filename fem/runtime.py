@@ -3,14 +3,16 @@
 import contextlib
 import functools
 import io
+import linecache
 import os
 import sys
 import textwrap
+import traceback
 import types
 
 import taichi as ti
 
-from fem import environment
+from fem import environment, quick_ops
 from fem.errors import FemError
 
 ARCHES = ("auto", "cpu", "gpu")
@@ -63,6 +65,7 @@ def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False)
         raise FemError(environment.problems()[0])
     brief_source_positions(not debug)
     remember_sources()
+    quick_ops.install()
     announce_compiling()
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
@@ -144,6 +147,39 @@ def remember_sources():
     kernel_impl.getsourcefile = remember(kernel_impl.getsourcefile)
     kernel_impl.getsourcelines = remember(kernel_impl.getsourcelines)
     kernel_impl.textwrap = types.SimpleNamespace(fill=remember(textwrap.fill), dedent=textwrap.dedent)
+
+
+def quick_declarations():
+    """Declaring a kernel or a field costs Taichi a look at the source of the line that declares it:
+    whether a kernel is declared in a class (`_inside_class`: inspect resolves the module of the
+    frame, 1.5 ms a kernel), and the whole stack of a field's declaration, kept for an error
+    message. Each kernel here is checked from the same line through linecache, and a field keeps
+    the three frames that declared it. Called before any module with kernels is imported."""
+    from taichi.lang import impl, kernel_impl, matrix, snode
+
+    if getattr(kernel_impl._inside_class, "quick", False):
+        return
+    patterns = kernel_impl._KERNEL_CLASS_STACKFRAME_STMT_RES
+
+    def inside_class(level_of_class_stackframe):
+        try:
+            frame = sys._getframe(level_of_class_stackframe)
+        except ValueError:
+            return False
+        line = linecache.getline(frame.f_code.co_filename, frame.f_lineno).strip()
+        return any(pattern.match(line) for pattern in patterns)
+
+    def declared_at(stacklevel=1):
+        try:
+            frame = sys._getframe(1 + stacklevel)
+        except ValueError:
+            frame = None
+        return "".join(traceback.format_list(traceback.extract_stack(frame, limit=3)))
+
+    inside_class.quick = True
+    kernel_impl._inside_class = inside_class
+    for module in (impl, matrix, snode):
+        module.get_traceback = declared_at
 
 
 # Who hears of each kernel that is about to compile (compile_listeners, announce_compiling).
