@@ -97,18 +97,37 @@ class SegmentSums:
             units, longest, per = capacity, -(-longest // per), self.fan_in
             if serial or not self.fan_in or longest <= self.fan_in:
                 break
+        # what `load` writes: the segments' starts, then each stage's first chunks and chunks' segments
+        self.layout_fields = [self.start] + [field for stage in self.stages
+                                             for field in (stage.first_chunk, stage.chunk_segment)]
 
     def load(self, starts):
         """The segments [starts[s], starts[s+1]) (numpy, segments + 1 offsets)."""
-        self.segments[None] = len(starts) - 1
-        _write(self.start, starts)
-        units, per = starts, self.chunk
+        layout, units, per = [np.asarray(starts)], starts, self.chunk
         for stage in self.stages:
             chunk_segment, first_chunk = chunk_layout(units, per, self.serial)
-            stage.chunks[None] = len(chunk_segment)
-            _write(stage.first_chunk, first_chunk)
-            _write(stage.chunk_segment, chunk_segment)
+            layout += [first_chunk, chunk_segment]
             units, per = first_chunk, self.fan_in
+        lengths = np.array([len(rows) for rows in layout], np.int32)
+        assert all(n <= field.shape[0] for n, field in zip(lengths, self.layout_fields))
+        self._load(np.concatenate(layout).astype(np.int32), lengths)
+
+    @ti.kernel
+    def _load(self, packed: ti.types.ndarray(), lengths: ti.types.ndarray()):
+        """Every layout field in one launch (one kernel to compile, not one per field): field k
+        <- packed's next lengths[k] numbers, its rows beyond them 0; each stage's chunk count."""
+        self.segments[None] = lengths[0] - 1
+        begin = 0
+        for k in ti.static(range(len(self.layout_fields))):
+            field = ti.static(self.layout_fields[k])
+            n = lengths[k]
+            for i in range(field.shape[0]):
+                field[i] = 0
+                if i < n:
+                    field[i] = packed[begin + i]
+            begin += n
+        for k in ti.static(range(len(self.stages))):
+            self.stages[k].chunks[None] = lengths[2 + 2 * k]
 
     @ti.func
     def _nothing(self):
@@ -190,10 +209,3 @@ class Stage:
         self.first_chunk = ti.field(ti.i32, segments + 1)
         self.partial = ti.Vector.field(width, dtype, capacity)
         self.chunks = ti.field(ti.i32, ())
-
-
-def _write(field, values):
-    """field <- values, padded with zeros to its size."""
-    padded = np.zeros(field.shape[0], np.int32)
-    padded[:len(values)] = values
-    field.from_numpy(padded)
