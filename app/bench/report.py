@@ -167,15 +167,14 @@ def markdown(results):
 
 # What limits each speed target that a run does not meet (profiles taken on the 2-core machine).
 LIMITS = {
-    "warm": "a warm start of epcot: Python's imports about 0.5 s (Taichi's 0.26), starting Taichi 0.17 s, building "
-            "the Simulation 0.6 s, the first Newton step 2.9 s, the second 0.3 s (the SVD's kernel, compiled when "
-            "a tet first needs it) and the summary 0.3 s. Nearly 3 s are the 30 kernels' two stages that run even "
-            "when the offline cache has them: Taichi's frontend translating their Python (1.5 s; the energy "
-            "projection's after_step 0.43 s, Newton's energy and gradient passes 0.25 s each), and loading them: "
-            "Taichi 1.7's CPU backend caches LLVM IR, not machine code, so LLVM optimises (O3) and compiles each "
-            "again (1.3 s). A kernel that read one of the two States compiled twice (the states swapped each "
-            "step) until the step's result was copied instead (1.4 s less); 2 x Taichi's start needs a cache of "
-            "machine code or far less kernel code",
+    "warm": "a warm start of epcot (3.6 s, 2026-11-30): Python's imports about 0.5 s (Taichi's 0.26), starting "
+            "Taichi 0.2 s, building the Simulation 0.5 s, the first Newton step 2.4 s. Most of it is the 28 kernels' "
+            "two stages that run even when the offline cache has them: Taichi's frontend translating their Python "
+            "(1.1 s; 1.9 s until Taichi's small-matrix operations were built straight from Python, "
+            "fem/quick_ops.py; the energy projection's after_step 0.25 s), and loading them (1.55 s): Taichi 1.7's "
+            "CPU backend caches LLVM IR, not machine code, and runs LLVM's O3 passes and code generation on every "
+            "module again at each load (its jit_cpu.cpp; nothing in its configuration changes that). 2 x Taichi's "
+            "start needs a cache of machine code or far less kernel code",
     "rotation": "on box50k, reading a tet's corners and Bm, forming F and writing Bm R^T and the quaternion "
                 "alone takes about 12 ns/tet on 2 cores; started from the last step's turn, one certified "
                 "Newton step on the polar decomposition finds R (two from the last R alone), and its scalar "
