@@ -86,21 +86,9 @@ def matmul(x, y):
     if _shape(x, 1) and _shape(y, 1):
         return dot(x, y)
     if _shape(x, 1) and _shape(y, 2):                  # v @ M = M^T v, as Taichi takes it
-        (n,), (rows, cols) = _shape(x, 1), _shape(y, 2)
-        if n != rows:
-            return NotImplemented
-        x, y = _held(x), _held(y)
-        zero = _held(_at(y, 0, 0) * _at(x, 0) * 0)
-        return _held(make_matrix([_added([zero] + [_at(y, k, j) * _at(x, k) for k in range(rows)])
-                                  for j in range(cols)]))
+        return _matrix_vector(y, x, lambda m, i, k: _at(m, k, i), *reversed(_shape(y, 2)), _shape(x, 1)[0])
     if _shape(x, 2) and _shape(y, 1):
-        (rows, inner), (n,) = _shape(x, 2), _shape(y, 1)
-        if inner != n:
-            return NotImplemented
-        x, y = _held(x), _held(y)
-        zero = _held(_at(x, 0, 0) * _at(y, 0) * 0)
-        return _held(make_matrix([_added([zero] + [_at(x, i, k) * _at(y, k) for k in range(inner)])
-                                  for i in range(rows)]))
+        return _matrix_vector(x, y, _at, *_shape(x, 2), _shape(y, 1)[0])
     if _shape(x, 2) and _shape(y, 2):
         (rows, inner), (n, cols) = _shape(x, 2), _shape(y, 2)
         if inner != n:
@@ -110,6 +98,16 @@ def matmul(x, y):
         return _held(make_matrix([[_added([zero] + [_at(x, i, k) * _at(y, k, j) for k in range(inner)])
                                    for j in range(cols)] for i in range(rows)]))
     return NotImplemented
+
+
+def _matrix_vector(m, v, entry, rows, inner, n):
+    """z_i = zero + sum_k entry(m, i, k) v_k (Taichi's matrix-vector loop), entry: m's (i, k) or (k, i)."""
+    if inner != n:
+        return NotImplemented
+    m, v = _held(m), _held(v)
+    zero = _held(entry(m, 0, 0) * _at(v, 0) * 0)
+    return _held(make_matrix([_added([zero] + [entry(m, i, k) * _at(v, k) for k in range(inner)])
+                              for i in range(rows)]))
 
 
 def transpose(x):
