@@ -214,12 +214,17 @@ class Model:
     def any_naive(self):
         return any(b.method == "corotational-naive" for b in self.bodies)
 
-    def any_stiff(self, dt):
-        """Some body may be too stiff for dt to follow: the step's test (Safeguards.stiff_turn,
+    def stiff(self, dt):
+        """Per body, whether it may be too stiff for dt to follow: the step's test (Safeguards.stiff_turn,
         (lam + 2 mu) dt^2 r >= M) at the largest radius of gyration it allows, r = 2 L (L the
-        body's size), so that a scene with none launches (and compiles) nothing for it."""
-        return any((b.material.lame[1] + 2.0 * b.material.lame[0]) * dt * dt * 2.0 * b.size >= b.mass
-                   for b in self.bodies)
+        body's size). Returns (bodies,) bool."""
+        return np.array([(b.material.lame[1] + 2.0 * b.material.lame[0]) * dt * dt * 2.0 * b.size >= b.mass
+                         for b in self.bodies], bool)
+
+    def any_stiff(self, dt):
+        """Some body may be too stiff for dt to follow (`stiff`): a scene with none launches (and
+        compiles) nothing for it."""
+        return bool(self.stiff(dt).any())
 
     def body_floor(self, relative, dt):
         """Per body, the square of `relative` times dt E L^2 (N s): the impulse over a step of

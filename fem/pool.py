@@ -22,6 +22,7 @@ from fem.implicit.broad_phase import BroadPhase
 from fem.implicit.contact import Contact
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
+from fem.implicit.energy_momentum import EnergyMomentum
 from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
@@ -81,7 +82,7 @@ def compiled_kernels():
     """How many kernels Taichi has compiled (or loaded from its offline cache) in this
     process for the engine: one per kernel and per set of parts it ran on."""
     classes = (Model, ImplicitSolver, Sleep, Rotations, Elasticity, Effects, Contact, BroadPhase, Islands,
-               IncrementalPotential, Preconditioner, LinearSolver, Newton, Safeguards, Measure, Patches)
+               IncrementalPotential, Preconditioner, LinearSolver, Newton, Safeguards, EnergyMomentum, Measure, Patches)
     kernels = [f for c in classes for f in vars(c).values() if hasattr(f, "_primal")]
     return sum(len(k._primal.compiled_kernels) for k in kernels)
 

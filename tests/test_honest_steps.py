@@ -36,10 +36,10 @@ def spun(sim, omega, vertices=slice(None)):
 
 
 @pytest.mark.parametrize("precision", ["f32", "f64"])
-def test_a_body_at_rest_beside_a_spinning_one_is_never_trimmed(precision):
+def test_a_body_at_rest_beside_a_spinning_one_is_never_trimmed(request, precision):
     """No gravity: the still rod's energy terms are all 0, and its energy wanders by round-off
     (about 1e-28 J in float64), which trimmed it on 25 to 99 of 100 steps before."""
-    fem.init("cpu", precision)
+    request.getfixturevalue(precision)
     rod = cube((3, 1, 1), (1.0, 0.2, 0.2))
     box = cube(2, (0.4, 0.4, 0.4))
     bodies = [Body("rod", rod, Material(1e5, 0.3, 1000.0), "corotational"),
@@ -147,7 +147,7 @@ def test_at_the_default_tolerances_halving_dt_never_makes_the_answer_worse(f64):
 @pytest.mark.parametrize("precision, E, nu, spin", [("f64", 1e9, 0.49995, 3.0), ("f32", 1e7, 0.45, 10.0)])
 @pytest.mark.parametrize("integrator, ground", [("backward-euler", None), ("backward-euler", -10.0), ("bdf2", None),
                                                 ("trapezoidal", None), ("trapezoidal", -10.0)])
-def test_a_stiff_spinning_cube_converges_from_its_rigid_turn(precision, E, nu, spin, integrator, ground):
+def test_a_stiff_spinning_cube_converges_from_its_rigid_turn(request, precision, E, nu, spin, integrator, ground):
     """A 0.5 m cube falling at 2 m/s and spinning at dt 0.02 s, with every integrator, in free
     flight (a ground far below, or none): Newton's first iterate, backward Euler's at x_n or a
     multistep rule's guess extrapolated from v_n, moved it along its turn's tangent, and at E 1e9,
@@ -162,7 +162,7 @@ def test_a_stiff_spinning_cube_converges_from_its_rigid_turn(precision, E, nu, s
     the ground); its centre falls at g, and it stays a cube (no edge longer by 1e-3). (In float32
     a cube at E 1e9, nu 0.49995 cannot be resolved: the round-off of its positions alone strains
     it by 6e-8, lam times that is 2e5 Pa, and its residual stays 1.)"""
-    fem.init("cpu", precision)
+    request.getfixturevalue(precision)          # f32 gives the module its f64 back after
     box = cube(2, (0.5, 0.5, 0.5))
     scene = Scene("stiff", [Body("box", box, Material(E, nu, 1000.0), "corotational")],
                   effects=Effects(gravity=(0.0, -G, 0.0), ground=ground),
@@ -171,9 +171,13 @@ def test_a_stiff_spinning_cube_converges_from_its_rigid_turn(precision, E, nu, s
     spun(sim, (0.0, 0.0, spin))
     sim.set_state(sim.positions(), sim.velocities() + [0.0, -2.0, 0.0])
     L0 = angular_momentum(sim)
+    # the conserving scheme's energy-momentum step minimises again from each answer with its
+    # inertia target set there, and at a smaller tolerance where the answer would leave the energy
+    # projection more than a share of the deformation's energy (fem/implicit/energy_momentum.py)
+    most = 12 if (integrator, ground) == ("trapezoidal", None) else 2
     for _ in range(10):
         info = sim.step()
-        assert info["newton_iters"] <= 2 and info["residual"] <= 1e-2 and not info["energy_limited"], info
+        assert info["newton_iters"] <= most and info["residual"] <= 1e-2 and not info["energy_limited"], info
     # backward Euler's own loss on a stiff rotor: dL = h sum x_n x f(x_(n+1)) = -(omega h)^2 L a step
     loss = 1e-6 if (integrator, ground) == ("trapezoidal", None) else (spin * 0.02) ** 2
     assert np.linalg.norm(angular_momentum(sim)) >= 0.99 * (1.0 - loss) ** 10 * np.linalg.norm(L0)
@@ -182,34 +186,6 @@ def test_a_stiff_spinning_cube_converges_from_its_rigid_turn(precision, E, nu, s
     edges = np.linalg.norm(sim.positions()[box.tets[:, 0]] - sim.positions()[box.tets[:, 1]], axis=1)
     rest = np.linalg.norm(box.vertices[box.tets[:, 0]] - box.vertices[box.tets[:, 1]], axis=1)
     assert np.abs(edges / rest - 1.0).max() <= 1e-3
-
-
-@pytest.mark.parametrize("precision", ["f32", "f64"])
-def test_a_stiff_spinning_body_keeps_its_energy_and_angular_momentum(precision):
-    """A 0.6 x 0.4 x 0.3 m box at E 1e10, spinning about an axis that is no principal axis (an
-    asymmetric top): the trapezoidal rule cannot follow its modes at dt 0.02 s, its solve fails,
-    and the body takes the rigid step that keeps a free rigid body's angular momentum and kinetic
-    energy (fem/implicit/fallback.free_turn). Checked against its start's, summed in numpy: before,
-    that step turned by omega_n dt with the spin kept, and the body lost 20 % of L in 2 s. Each such
-    step says so: trimmed (energy_limited) and not converged."""
-    fem.init("cpu", precision)
-    box = cube((3, 2, 2), (0.6, 0.4, 0.3))
-    sim = fem.Simulation(Scene("top", [Body("box", box, Material(1e10, 0.3, 1000.0), "corotational")],
-                               effects=Effects(), solver=SolverSettings(dt=0.02)))
-    spun(sim, (1.0, 10.0, 3.0))
-    E0, L0 = sim.stats()["total_energy"], angular_momentum(sim)
-    honest, energies = True, []
-    for _ in range(100):
-        info = sim.step()
-        honest &= not (info["energy_limited"] and info["converged"])
-        energies.append(sim.stats()["total_energy"])
-    assert honest
-    # the rigid step keeps energy exactly; the deformation a rare converged step leaves behind is
-    # what the next rigid step drops (2.7e-6 and 4.5e-5 of it in f64): never a rise
-    rise = 1e-12 if precision == "f64" else 1e-5
-    assert max(energies) <= E0 * (1 + rise) and min(energies) >= E0 * (1 - 1e-3)
-    kept = 1e-12 if precision == "f64" else 1e-3
-    assert np.linalg.norm(angular_momentum(sim) - L0) <= kept * np.linalg.norm(L0)
 
 
 def centre_and_momentum(sim):

@@ -96,11 +96,12 @@ class Newton:
         self.from_guess = False           # the step's first iterate is its guess (else v = 0)
         self.islands = None               # the solver adds Islands where contact couples bodies
 
-    def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False):
+    def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False, warm=True):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
         scale: how far the first solve extrapolates the last step's change (dt / dt_prev).
         frozen: the rotations stay those of the first iterate (the one-solve step on the ground:
-        E is then quadratic but for the ground's terms, and the iterations find the contacts)."""
+        E is then quadratic but for the ground's terms, and the iterations find the contacts).
+        warm: the first direction starts from the guess (else from 0: a solve again from an answer)."""
         p = self.potential
         # With contact, a pair's friction curves by 2 / eps while it sticks and not at all along its
         # slide: Newton's model sends a sliding pair that should stop far past rest, and one line
@@ -131,7 +132,7 @@ class Newton:
                 # the blocks of the pairs touching now: those of the step's start made PCG's operator
                 # 40 times worse conditioned than H itself once pairs came or went (two_boxes)
                 self.linear.preconditioning.build_preconditioner(cM, cK)
-            out.solver_iters += self.direction(cM, cK, target, out.newton_iters == 0, scale, settings,
+            out.solver_iters += self.direction(cM, cK, target, warm and out.newton_iters == 0, scale, settings,
                                                preconditioner)
             out.newton_iters += 1
             largest = 1.0

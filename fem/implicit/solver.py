@@ -17,6 +17,7 @@ import taichi as ti
 from fem.implicit.contact import Contact
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
+from fem.implicit.energy_momentum import PASSES, TIGHTER, EnergyMomentum
 from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho
 from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
@@ -113,6 +114,8 @@ class ImplicitSolver:
         self.history = History(model, self.sleep, switches)
         self.safeguards = Safeguards(model, self.potential, self.history, self.elasticity, self.effects, self.sleep,
                                      switches)
+        self.energy_momentum = EnergyMomentum(model, self.potential, self.elasticity, self.rotations, self.effects,
+                                              self.safeguards, self.sleep, switches)
         self.x_end = ti.Vector.field(3, float, model.capacity.vertices)   # m: where the last step ended
         self.rates_from_start = 0                             # what potential.rate_from_start holds
 
@@ -172,6 +175,12 @@ class ImplicitSolver:
                                                         scale=scale if self.turn_known else 0.0)
         self.turn_known = not ended_here                                # the turn of this step, recorded
         self.measure_rates_from_start(integrator == "backward-euler" and corotational)
+        # the conserving scheme (the undamped trapezoidal rule off the ground): its stiff corotational
+        # bodies take the energy-momentum step (fem/implicit/energy_momentum.py)
+        conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
+        momentum_step = newton and conserve and corotational and model.any_stiff(dt)
+        if momentum_step:
+            self.energy_momentum.begin(state_in.x)                     # S_n, Psi_n with R(x_n)
         if newton:
             self.safeguards.body_energy(p.x, p.v, BEFORE, int(not ended_here))   # x, v = x_n, v_n still
         if self.history.fresh:                                          # a_n from the forces at x_n, v_n
@@ -202,7 +211,9 @@ class ImplicitSolver:
 
         # minimise E: Newton with a line search per body, or the one-solve step (on the ground:
         # Newton with the rotations of the first iterate, to find the contacts)
-        if newton:
+        if momentum_step:
+            solved = self.energy_momentum_solve(state_in, cM, cK, h, tolerance, scale, settings)
+        elif newton:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
         elif (ground or contact) and not model.any_naive:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner, frozen=True)
@@ -210,8 +221,7 @@ class ImplicitSolver:
             solved = self.newton.one_solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
 
         # the safeguards: finite, momentum (of bodies no ground pushes), energy: the conserving scheme
-        # (the trapezoidal rule, undamped, off the ground) is projected onto the energy it began with
-        conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
+        # is projected onto the energy it began with
         bad, trimmed, rigid, strained, pending = self.safeguards.after_step(state_in, h, dt, newton,
                                                                             int(target.one_step), conserve)
         finite = bad == 0 and math.isfinite(solved.rho)
@@ -254,6 +264,38 @@ class ImplicitSolver:
                         newton_iters=max(solved.newton_iters, 1), solver_iters=solved.solver_iters,
                         line_search_steps=solved.halvings, energy_limited=trimmed, rotation_ms=rotation_ms,
                         solve_ms=wall_ms - rotation_ms)
+
+    def energy_momentum_solve(self, state_in, cM, cK, h, tolerance, scale, settings):
+        """The energy-momentum step: Newton minimises the trapezoidal potential whose v^ the
+        algorithmic force at the iterate sets (`EnergyMomentum.target`), from the first iterate,
+        then again from each answer with v^ set there, until that answer meets the tolerance as it
+        is (a pass with no Newton iteration: the step's own residual is within it) or after PASSES.
+        Where an answer leaves the energy projection more than a small share of a body's
+        deformation energy to pay (`energy_error`), the next pass has a smaller tolerance; the
+        step's own tolerance still says whether it converged. Returns the passes' Solved, summed."""
+        em, floor, asked = self.energy_momentum, ROUNDOFF * epsilon(), tolerance
+        solved = None
+        for _ in range(PASSES):
+            em.target(state_in.x, state_in.v, self.potential.x, h)
+            again = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner,
+                                      warm=solved is None)
+            done = again.rho <= 1.0 and again.newton_iters == 0
+            if solved is not None:
+                again.newton_iters += solved.newton_iters
+                again.solver_iters += solved.solver_iters
+                again.halvings += solved.halvings
+                again.rotation_ms += solved.rotation_ms
+            solved = again
+            error = em.energy_error(state_in.x, 2.0 * h) if done and tolerance > floor else 0.0
+            if error > 1.0:                         # the deformation's energy asks for a closer answer
+                done = False
+                tolerance = max(TIGHTER * tolerance, floor)
+                settings = replace(settings, newton_tolerance=TIGHTER * settings.newton_tolerance)
+            if done:
+                break
+        if tolerance < asked and solved.rho > 1.0:      # converged is the step's tolerance's word
+            solved.rho = float(self.newton.evaluate_first(h, asked, 1))
+        return solved
 
     def measure_rates_from_start(self, chords):
         """With stiffness damping, a step whose velocities are chords (backward Euler's, of a
@@ -299,6 +341,7 @@ class ImplicitSolver:
         self.pinned_np = np.array([(model.free_np[b.vertices] == 0).any() for b in model.bodies], np.int32)
         self.awake_np = np.ones(len(model.bodies), np.int32)
         self.floor_np = self.speed_floor_np = self.quiet_np = np.zeros(len(model.bodies))   # set by refresh
+        self.stiff_np = np.zeros(len(model.bodies), np.int32)
         self.size_np = np.array([b.size for b in model.bodies], np.float64)   # L, m: the floors' size
         self.model_version = None                             # (model edit, dt) the cached data is for
         self.preconditioning.load()
@@ -343,6 +386,7 @@ class ImplicitSolver:
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
             self.quiet_np = self.model.body_quiet(ROUNDOFF * epsilon(), dt)
+            self.stiff_np = self.model.stiff(dt).astype(np.int32)
             self.write_bodies()
             if not self.model.any_corotational and self.rotations.rotated:
                 self.rotations.unrotate()                     # every body switched to linear
@@ -370,12 +414,12 @@ class ImplicitSolver:
     def write_bodies(self):
         """The per-body inputs (pinned, awake, round-off floors) into their parts' fields, in one kernel."""
         self._write_bodies(self.pinned_np, self.awake_np, self.floor_np, self.speed_floor_np, self.quiet_np,
-                           self.size_np)
+                           self.size_np, self.stiff_np)
 
     @ti.kernel
     def _write_bodies(self, pinned: ti.types.ndarray(), awake: ti.types.ndarray(),
                       floor: ti.types.ndarray(), speed_floor: ti.types.ndarray(), quiet: ti.types.ndarray(),
-                      size: ti.types.ndarray()):
+                      size: ti.types.ndarray(), stiff: ti.types.ndarray()):
         ti.loop_config(serialize=True)
         for b in range(pinned.shape[0]):
             self.safeguards.body_pinned[b], self.sleep.awake[b] = pinned[b], awake[b]
@@ -383,6 +427,7 @@ class ImplicitSolver:
             self.potential.body_floor[b], self.potential.body_far[b] = floor[b], 1.0
             self.potential.body_size_sq[b] = size[b] ** 2
             self.safeguards.body_quiet[b] = quiet[b]
+            self.energy_momentum.body_stiff[b] = stiff[b]
 
     @ti.kernel
     def finish(self, v_n: ti.template(), x: ti.template(), v: ti.template(), good: ti.i32, fit: ti.i32):
