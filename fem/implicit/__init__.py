@@ -30,6 +30,7 @@ One module per part, each owning its fields and kernels; `ImplicitSolver` compos
     islands.py         the line search of bodies that contact couples
     pair_geometry.py   one contact pair: its distance, normal and weights, and IPC's barrier
     sleep.py           which bodies the step moves
+    energy_momentum.py the conserving scheme's energy-momentum step for stiff bodies (the algorithmic force)
     safeguards.py      finite results, momentum, no energy gain: the energy projection
     projection.py      the projection's move of positions, where scaled velocities cannot pay
     fallback.py        the rigid step of a body whose rise nothing pays for, and each body's rigid motion
