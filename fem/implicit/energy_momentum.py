@@ -26,15 +26,16 @@ potential's gradient M (v - v^) - h M g - h f(x) is the step's residual when
 a* = g + M^-1 (2 f_algo(x_n, x) - f(x)): `target` sets v^ from the iterate x, and Newton
 minimises again from there until that residual meets the tolerance (the solver's loop). What
 is lagged, 2 f_algo - f(x) = f(x_n) + O(dx^2), changes little with x: a stiff spinning cube
-needs 2 to 4 passes, a soft body one.
+needs 2 or 3 passes. Only bodies too stiff for dt to follow take it (`body_stiff`); a soft body's
+trapezoidal rule loses nothing the projection cannot give back.
 
-Fields (m tets, bodies of the capacity), made on the first step that needs them:
+Fields (m tets, bodies of the capacity), made on the first step that needs them (body_stiff at once):
     start_piola (m, 3x3)    P_n, the tet's first Piola stress at x_n (Pa)
     start_stress (m, 3x3)   S_n of a corotational tet (Pa), 0 near inverting
     start_energy (m,)       Psi_n of the tet, J (float64)
     body_error (bodies,)    e_b, the energy error a body's answer leaves the projection (`energy_error`), J
     body_stiff (bodies,)    1: a corotational body too stiff for dt to follow (Model.stiff), which takes
-                            the algorithmic force; the others keep the trapezoidal rule (made at once)
+                            the algorithmic force; the others keep the trapezoidal rule
 """
 
 import taichi as ti
