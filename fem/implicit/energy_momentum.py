@@ -182,10 +182,8 @@ class EnergyMomentum:
         """Vertex i's share of e_b, r_i . (chord - v_c - omega x (x_mid - c)), J."""
         x_n = ti.static(data[0])
         dt = data[1]
-        g = self.safeguards
         x, start = ti.cast(self.potential.x[i], F64), ti.cast(x_n[i], F64)
-        r = 0.5 * (x + start) - g.body_centre[b]
-        w = (x - start) / dt - g.centre_velocity(b) - g.body_spin[b].cross(r)
+        w = self.safeguards.deformation_velocity(b, 0.5 * (x + start), (x - start) / dt)
         e = -ti.cast(self.effects.filtered(i, self.potential.rhs[i]), F64).dot(w)
         return ti.Vector([e, 0, 0, 0, 0, 0, 0, 0, 0, 0], F64)
 

@@ -199,9 +199,14 @@ class Fallback:
         """Free vertex i's kinetic energy of deformation, m |v - v_c - omega x r|^2 / 2."""
         x, v = ti.static(data[0], data[1])
         m = ti.cast(self.model.mass[i] * self.model.free[i], ti.f64)
-        r = ti.cast(x[i], ti.f64) - self.body_centre[b]
-        w = ti.cast(v[i], ti.f64) - self.centre_velocity(b) - self.body_spin[b].cross(r)
+        w = self.deformation_velocity(b, ti.cast(x[i], ti.f64), ti.cast(v[i], ti.f64))
         return ti.Vector([0.5 * m * w.norm_sqr(), 0, 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
+
+    @ti.func
+    def deformation_velocity(self, b, x, v):
+        """v at x less body b's rigid motion (`rigid_motion`): v - v_c - omega x (x - c), float64."""
+        r = x - self.body_centre[b]
+        return v - self.centre_velocity(b) - self.body_spin[b].cross(r)
 
     @ti.func
     def store_deformation(self, b, total, data: ti.template()):
