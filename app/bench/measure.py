@@ -136,7 +136,7 @@ def summarise(variant, run, reference, sim, times, plan):
         row.update(newton_per_step=statistics.mean(i["newton_iters"] for i in infos),
                    iters_per_step=statistics.mean(i["solver_iters"] for i in infos),
                    line_search_steps=sum(i["line_search_steps"] for i in infos),
-                   energy_limited=sum(i["energy_limited"] + i.get("retried", 0) for i in infos),
+                   energy_limited=sum(i["energy_limited"] for i in infos),
                    ms_per_iter=per_iter, ns_per_tet_iter=1e6 * per_iter / sim.model.n_tets,
                    converged=sum(i["converged"] for i in infos) / len(infos))
     return row

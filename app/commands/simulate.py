@@ -117,7 +117,7 @@ class Tally:
     compact columns: a million steps take 30 MB, not the 0.8 GB of their stats rows."""
 
     KEYS = {"wall_ms": "d", "solver_iters": "d", "newton_iters": "d", "converged": "b", "finite": "b",
-            "energy_limited": "d", "retried": "d"}
+            "energy_limited": "d", "restarted": "d"}
 
     def __init__(self):
         self.columns = {key: array(code) for key, code in self.KEYS.items()}
@@ -225,13 +225,14 @@ def summary(sim, rows):
 
 
 def fallback_note(rows):
-    """' (of them 3 with a rigid step instead of the solve's, 1 taken again by backward Euler)':
-    the steps whose solve failed for some body, which the safeguards replaced (fem/implicit/safeguards.py)."""
+    """' (of them 3 with a rigid step instead of the solve's), 1 step by backward Euler after a strained
+    body's failed one': the steps whose solve failed for some body, which the safeguards replaced
+    (fem/implicit/safeguards.py), and the steps after a strained body's failed second-order one,
+    which backward Euler took (ImplicitSolver.step)."""
     trimmed = sum(1 for n in rows["energy_limited"] if n > 0)
-    retried = sum(1 for n in rows["retried"] if n > 0)
-    parts = ([f"{trimmed} with a rigid step instead of the solve's"] if trimmed else []) \
-        + ([f"{retried} taken again by backward Euler"] if retried else [])
-    return f" (of them {', '.join(parts)})" if parts else ""
+    restarted = sum(1 for n in rows["restarted"] if n > 0)
+    return (f" (of them {trimmed} with a rigid step instead of the solve's)" if trimmed else "") + \
+        (f", {counted(restarted, 'step')} by backward Euler after a strained body's failed one" if restarted else "")
 
 
 ENERGY_TERMS = (("kinetic", "kinetic_energy"), ("elastic", "elastic_energy"),

@@ -11,7 +11,7 @@ BEFORE, AFTER = 0, 1     # rows of Safeguards.body_total
 STAY = 2                 # body_fallback: the trimmed body stays at x_n (`slowed`)
 # A trimmed body whose elastic energy at the start was above this share of the size of its energy's
 # terms (kinetic, elastic, |gravitational|), and above mu V STRAINED_STRAIN^2, is strained
-# (`strained`): its step is taken again by backward Euler, not rigidly
+# (`strained`): after its rigid step the next step is backward Euler's (ImplicitSolver.step)
 STRAINED = 1e-3
 STRAINED_STRAIN = 1e-3
 FREE_TURN_ITERATIONS = 40    # `free_turn`'s fixed point: each contracts by about dt |omega| (0.2 at 10 rad/s, dt 0.02 s)
@@ -125,7 +125,7 @@ class Fallback:
         STRAINED of the size of their energy's terms, and above that of a strain of
         STRAINED_STRAIN everywhere (mu V STRAINED_STRAIN^2): an inverted start, a strained body
         spinning at dt 0.5 s. A rigid step would keep that strain for as long as the solve keeps
-        failing; the solver takes the step again by backward Euler. A stiff body that moves as
+        failing; the solver takes the next step by backward Euler. A stiff body that moves as
         one (spinning or falling at E 1e10: strains of round-off, 1e-8 of its energy) and a body
         at rest with round-off's strain energy (1e-9 J) are not strained."""
         ti.loop_config(serialize=True)

@@ -52,6 +52,8 @@ Fields (bodies of the capacity; energies summed in float64):
                                  terms are 0 (`Model.body_quiet`): a rise below it is no failed solve
 """
 
+from dataclasses import dataclass
+
 import taichi as ti
 
 from fem.elastic import is_finite
@@ -69,6 +71,35 @@ LIFT = 0.1
 # left 2e3 J where the formula said 0 (the sliver hard case, f32, dt 0.5 s)
 FAILED = 0.5
 FIVE_I32 = ti.types.vector(5, ti.i32)
+
+
+@dataclass(frozen=True)
+class Ending:
+    """What a step's end is checked for (`Safeguards.end_step`): newton, a Newton step (its
+    energy measured and projected); keep, the history keeps the step's acceleration a_(n+1) (a
+    one-step rule); conserve, the conserving scheme (onto the energy BEFORE, both ways);
+    solved, the solve's result is finite; tolerance, the one every body's solve met (0: some
+    body's did not)."""
+
+    newton: bool
+    keep: int
+    conserve: int
+    solved: bool
+    tolerance: float
+
+
+@dataclass(frozen=True)
+class Ended:
+    """What the step's end did: finite, every new position and velocity is (else the caller
+    keeps its state); trimmed, bodies whose rise the projection could not pay for; rigid, of those
+    the bodies that took a rigid step; strained, of those the ones that began the step strained
+    (the next step is backward Euler's); rotation_ms, time in rotation extraction."""
+
+    finite: bool
+    trimmed: int
+    rigid: int
+    strained: int
+    rotation_ms: float
 
 
 @ti.data_oriented
@@ -115,6 +146,24 @@ class Safeguards(Fallback, InternalMove):
     def forget_band(self):
         """The next step starts every body's band anew (a new state: `start_band`)."""
         self.body_scale.fill(-1.0)
+
+    def end_step(self, start, h, dt, ending, rotations_at):
+        """The step's end, entered once from the step (`ImplicitSolver.step`): finite, momentum and
+        energy on the iterate (`after_step`); where a rise is more than the velocities can pay, the
+        positions move first (`move_positions`); a body trimmed all the same takes a rigid step
+        (`fall_back`), which `settle` measures again. start: the step's State (x_n, v_n); ending:
+        an Ending; rotations_at(x) extracts the rotations at x and returns its ms. Returns an Ended."""
+        x, v = self.potential.x, self.potential.v
+        bad, trimmed, rigid, strained, pending = self.after_step(start, h, dt, ending.newton, ending.keep,
+                                                                 ending.conserve)
+        finite, ms = bad == 0 and ending.solved, 0.0
+        if finite and pending > 0:            # a rise the velocities cannot pay: positions pay first
+            trimmed, rigid, strained, ms = self.move_positions(start, dt, ending.conserve, ending.tolerance,
+                                                               rotations_at)
+        if finite and rigid > 0 and not self.effects.has_contact:   # a rigid step's rounding strains a stiff body in f32
+            ms += rotations_at(x)
+            self.settle(start.x, x, v)
+        return Ended(finite, int(trimmed) if finite else 0, int(rigid), int(strained), ms)
 
     @ti.kernel
     def after_step(self, start: ti.template(), h: float, dt: float, energy: ti.template(), keep: ti.i32,

@@ -25,7 +25,7 @@ from fem.implicit.newton import Newton
 from fem.implicit.potential import GRADIENT_ROUNDOFF, ROUNDOFF, IncrementalPotential
 from fem.implicit.preconditioner import Preconditioner
 from fem.implicit.rotations import Rotations
-from fem.implicit.safeguards import BEFORE, Safeguards
+from fem.implicit.safeguards import BEFORE, Ending, Safeguards
 from fem.implicit.sleep import Sleep
 from fem.runtime import epsilon, precision, serial_loops
 
@@ -37,7 +37,7 @@ class StepInfo:
     finite: every new position and velocity is finite (else the caller keeps the old state).
     converged: every body's gradient met the tolerance (single step: the linear solve did);
         a Newton step that stopped for another reason (velocities settled, max_newton) did not,
-        nor did one where some body was trimmed (energy_limited) or the step retried.
+        nor did one where some body was trimmed (energy_limited).
     residual: max over bodies of |grad_b E| / s_b at the answer, dimensionless (s_b: the size of the
         body's terms): <= tolerance when converged, unless the step stopped at round-off
         (`at_floor`). The one-solve step: its linear solve's residual.
@@ -51,9 +51,11 @@ class StepInfo:
         the energy and angular momentum of the conserving scheme; a rise taken out of any other
         Newton step) is part of the scheme and is not counted.
     rotation_ms, solve_ms: wall time in rotation extraction and in the rest of the step (ms).
-    retried: bodies whose second-order solve failed (they would have been trimmed), so that the
-        step was taken again by backward Euler, whose name `integrator` then gives: where one of
-        them began the step strained (`Safeguards.strained`).
+    restarted: 1 where this step is backward Euler's because the step before was second order and
+        its solve failed for a body that began it strained (`Safeguards.strained`: an inverted
+        start, a strained body spinning at dt 0.5 s); that body took a rigid step there, counted
+        in its energy_limited, and backward Euler damps what the second-order rule could not
+        follow. `integrator` then says "backward-euler".
     """
 
     finite: bool
@@ -66,7 +68,7 @@ class StepInfo:
     rotation_ms: float
     solve_ms: float
     integrator: str = "backward-euler"    # the step's own: a two-step integrator restarts with backward Euler
-    retried: int = 0
+    restarted: int = 0
     at_floor: bool = False
 
 
@@ -126,15 +128,15 @@ class ImplicitSolver:
                  self.preconditioning, self.linear, self.newton, self.safeguards, self.history)
         return parts + ((self.patches,) if self.patches is not None else ())
 
-    def step(self, state_in, state_out, dt, retry=True):
+    def step(self, state_in, state_out, dt):
         """One implicit step from state_in into state_out; returns a StepInfo.
 
         A second-order step whose solve failed for a body far from its rest shape (the safeguards
-        found a rise no projection can pay for, and would give it a rigid step, which keeps its
-        strain) is taken again as a backward Euler step (retry): that damps what the second-order
-        rule could not follow (an inverted start at dt 0.5 s), and the next step starts the
-        history anew. A failed body that mostly moves (a stiff spinning or falling body) keeps
-        the rigid step, which keeps its motion.
+        found a rise no projection can pay for and gave it a rigid step, which keeps its strain:
+        `Safeguards.strained`) is reported as such, and the next step is backward Euler's
+        (`restart`): that damps what the second-order rule could not follow (an inverted start at
+        dt 0.5 s), and the step after it starts the history anew. A failed body that mostly moves
+        (a stiff spinning or falling body) only takes the rigid step, which keeps its motion.
 
         state_in is never written. When the result is not finite, state_out holds garbage
         and the caller keeps state_in (a rejected step is a step not swapped in). The step
@@ -143,13 +145,14 @@ class ImplicitSolver:
         """
         start = time.perf_counter()
         settings, model, p = self.settings, self.model, self.potential
-        if not retry:
+        restarted = self.restart
+        if restarted:
             self.history.forget()
         corotational, ground, contact = model.any_corotational, self.switches.ground, self.switches.contact
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
         damped = self.effects.damped
-        integrator = chosen(settings.integrator, ground or contact) if retry else "backward-euler"
+        integrator = "backward-euler" if restarted else chosen(settings.integrator, ground or contact)
         rho = settings.rho_infinity
         if rho is None:          # by the scene: rest where damped, no ringing on a ground's or contact's penalty
             rho = default_rho(dt, damped, ground or contact)
@@ -175,10 +178,12 @@ class ImplicitSolver:
                                                         scale=scale if self.turn_known else 0.0)
         self.turn_known = not ended_here                                # the turn of this step, recorded
         self.measure_rates_from_start(integrator == "backward-euler" and corotational)
-        # the conserving scheme (the undamped trapezoidal rule off the ground): its stiff corotational
-        # bodies take the energy-momentum step (fem/implicit/energy_momentum.py)
+        # the conserving scheme: the undamped trapezoidal rule off the ground. There, and under the
+        # theta rule with mass damping, stiff corotational bodies take the energy-momentum step
+        # (energy_momentum.py; with stiffness damping the step's line search stalls: method.md, section 6)
         conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
-        momentum_step = newton and conserve and corotational and model.any_stiff(dt)
+        momentum_step = newton and target.one_step and not (ground or contact or self.switches.stiffness_damping) \
+            and corotational and model.any_stiff(dt)
         if momentum_step:
             self.energy_momentum.begin(state_in.x)                     # S_n, Psi_n with R(x_n)
         if newton:
@@ -212,7 +217,7 @@ class ImplicitSolver:
         # minimise E: Newton with a line search per body, or the one-solve step (on the ground:
         # Newton with the rotations of the first iterate, to find the contacts)
         if momentum_step:
-            solved = self.energy_momentum_solve(state_in, cM, cK, h, tolerance, scale, settings)
+            solved = self.energy_momentum_solve(state_in, cM, cK, h, target.c, tolerance, scale, settings)
         elif newton:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
         elif (ground or contact) and not model.any_naive:
@@ -222,23 +227,13 @@ class ImplicitSolver:
 
         # the safeguards: finite, momentum (of bodies no ground pushes), energy: the conserving scheme
         # is projected onto the energy it began with
-        bad, trimmed, rigid, strained, pending = self.safeguards.after_step(state_in, h, dt, newton,
-                                                                            int(target.one_step), conserve)
-        finite = bad == 0 and math.isfinite(solved.rho)
-        if finite and pending > 0:                  # a rise the velocities cannot pay: positions pay first
-            trimmed, rigid, strained, ms = self.safeguards.move_positions(
-                state_in, dt, conserve, tolerance if solved.rho <= 1.0 else 0.0,
-                lambda x: self.update_rotations(x, corotational)[0])
-            rotation_ms += ms
-        if retry and strained > 0 and newton and not contact and integrator != "backward-euler":
-            self.end_known = None                   # start again from x_n: its rotations anew
-            again = self.step(state_in, state_out, dt, retry=False)
-            return replace(again, retried=int(rigid), converged=False,    # the second-order solve failed
-                           solve_ms=1e3 * (time.perf_counter() - start) - again.rotation_ms)
-        if finite and rigid > 0 and not contact:     # a rigid step's rounding strains a stiff body in f32
-            rotation_ms += self.update_rotations(p.x, corotational)[0]
-            self.safeguards.settle(state_in.x, p.x, p.v)
-        trimmed = int(trimmed) if finite else 0
+        ending = Ending(newton, int(target.one_step), conserve, math.isfinite(solved.rho),
+                        tolerance if solved.rho <= 1.0 else 0.0)
+        ended = self.safeguards.end_step(state_in, h, dt, ending, lambda x: self.update_rotations(x, corotational)[0])
+        finite, trimmed, rigid = ended.finite, ended.trimmed, ended.rigid
+        rotation_ms += ended.rotation_ms
+        # a strained body's second-order solve failed: the next step is backward Euler's
+        self.restart = finite and ended.strained > 0 and newton and not contact and integrator != "backward-euler"
         # the rotations and elastic energies the next step can reuse: those of its x_n (the
         # projection scales velocities and shifts bodies whole: strains stay), unless a body
         # fell back to its start, whose a_n the next step takes from the forces there too
@@ -263,9 +258,9 @@ class ImplicitSolver:
                         residual=residual if math.isfinite(residual) else None,
                         newton_iters=max(solved.newton_iters, 1), solver_iters=solved.solver_iters,
                         line_search_steps=solved.halvings, energy_limited=trimmed, rotation_ms=rotation_ms,
-                        solve_ms=wall_ms - rotation_ms)
+                        solve_ms=wall_ms - rotation_ms, restarted=int(restarted))
 
-    def energy_momentum_solve(self, state_in, cM, cK, h, tolerance, scale, settings):
+    def energy_momentum_solve(self, state_in, cM, cK, h, rho, tolerance, scale, settings):
         """The energy-momentum step: Newton minimises the trapezoidal potential whose v^ the
         algorithmic force at the iterate sets (`EnergyMomentum.target`), from the first iterate,
         then again from each answer with v^ set there, until that answer meets the tolerance as it
@@ -279,7 +274,8 @@ class ImplicitSolver:
         em, floor, asked = self.energy_momentum, ROUNDOFF * epsilon(), tolerance
         solved, single = None, precision() == "f32"
         for _ in range(PASSES):
-            em.target(state_in.x, state_in.v, self.potential.x, h)
+            em.target(state_in.x, state_in.v, self.potential.x, h, rho, self.history.acceleration(),
+                      rho != 1.0 or self.effects.damped)
             again = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner,
                                       warm=solved is None)
             done = again.rho <= 1.0 and again.newton_iters == 0
@@ -376,6 +372,7 @@ class ImplicitSolver:
         self.last_dt = 0.0                                    # s, the dt of the step that made the change
         self.end_known = None         # the model version whose R and elastic energies at x_n are known
         self.turn_known = False       # the rotations' turn field holds the last step's turn
+        self.restart = False          # the next step is backward Euler's (`step`)
 
     def refresh(self, cM, cK, h, dt):
         """Re-derive what depends on the model's methods and materials (after a live edit), the
