@@ -75,9 +75,7 @@ class StepInfo:
 @dataclass(frozen=True)
 class Switches:
     """What a solver compiles in or out: the effects a scene calls for (gravity, ground,
-    stiffness damping, pins), whether its loops run on one thread (small meshes), and whether
-    some body may be too stiff for the scene's dt to follow (`Model.stiff`: with stiffness
-    damping, the line search then holds the damping's frame, IncrementalPotential.holds_frame)."""
+    stiffness damping, pins), and whether its loops run on one thread (small meshes)."""
 
     gravity: bool
     ground: bool
@@ -86,13 +84,11 @@ class Switches:
     serial_tets: bool
     serial_vertices: bool
     contact: bool = False             # between bodies and within one (fem/implicit/contact.py)
-    stiff: bool = False
 
     @classmethod
-    def of(cls, effects, n_vertices, n_tets, has_pins, stiff):
+    def of(cls, effects, n_vertices, n_tets, has_pins):
         return cls(effects.gravity is not None, effects.ground is not None, effects.beta > 0, has_pins,
-                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"), effects.contact is not None,
-                   bool(stiff))
+                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"), effects.contact is not None)
 
 
 @ti.data_oriented
@@ -336,8 +332,7 @@ class ImplicitSolver:
         """Start on the model's current scene: its effects' values and the solver settings
         (read at every step: a window may change them live)."""
         model = self.model
-        assert Switches.of(effects, model.n_vertices, model.n_tets, model.has_pins,
-                           model.any_stiff(settings.dt)) == self.switches
+        assert Switches.of(effects, model.n_vertices, model.n_tets, model.has_pins) == self.switches
         self.settings = settings
         self.effects.load(effects)
         self.effects.set_dt(settings.dt)
