@@ -75,7 +75,9 @@ class StepInfo:
 @dataclass(frozen=True)
 class Switches:
     """What a solver compiles in or out: the effects a scene calls for (gravity, ground,
-    stiffness damping, pins), and whether its loops run on one thread (small meshes)."""
+    stiffness damping, pins), whether its loops run on one thread (small meshes), and whether
+    some body may be too stiff for the scene's dt to follow (`Model.stiff`: with stiffness
+    damping, the line search then holds the damping's frame, IncrementalPotential.holds_frame)."""
 
     gravity: bool
     ground: bool
@@ -84,11 +86,13 @@ class Switches:
     serial_tets: bool
     serial_vertices: bool
     contact: bool = False             # between bodies and within one (fem/implicit/contact.py)
+    stiff: bool = False
 
     @classmethod
-    def of(cls, effects, n_vertices, n_tets, has_pins):
+    def of(cls, effects, n_vertices, n_tets, has_pins, stiff):
         return cls(effects.gravity is not None, effects.ground is not None, effects.beta > 0, has_pins,
-                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"), effects.contact is not None)
+                   serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"), effects.contact is not None,
+                   bool(stiff))
 
 
 @ti.data_oriented
@@ -332,7 +336,8 @@ class ImplicitSolver:
         """Start on the model's current scene: its effects' values and the solver settings
         (read at every step: a window may change them live)."""
         model = self.model
-        assert Switches.of(effects, model.n_vertices, model.n_tets, model.has_pins) == self.switches
+        assert Switches.of(effects, model.n_vertices, model.n_tets, model.has_pins,
+                           model.any_stiff(settings.dt)) == self.switches
         self.settings = settings
         self.effects.load(effects)
         self.effects.set_dt(settings.dt)
