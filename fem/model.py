@@ -55,12 +55,6 @@ class Capacity:
         return cls(cls.rounded(n_vertices, 1024), cls.rounded(n_tets, 4096), cls.rounded(n_bodies, 32))
 
 
-def stiff_bodies(bodies, dt):
-    """Per body (fem.builder's), whether it may be too stiff for dt to follow (`Model.stiff`)."""
-    return np.array([(b.material.lame[1] + 2.0 * b.material.lame[0]) * dt * dt * 2.0 * b.size >= b.mass
-                     for b in bodies], bool)
-
-
 @ti.data_oriented
 class Model:
     """Rest shape, per-tet constants, masses and materials of every body.
@@ -224,7 +218,8 @@ class Model:
         """Per body, whether it may be too stiff for dt to follow: the step's test (Safeguards.stiff_turn,
         (lam + 2 mu) dt^2 r >= M) at the largest radius of gyration it allows, r = 2 L (L the
         body's size). Returns (bodies,) bool."""
-        return stiff_bodies(self.bodies, dt)
+        return np.array([(b.material.lame[1] + 2.0 * b.material.lame[0]) * dt * dt * 2.0 * b.size >= b.mass
+                         for b in self.bodies], bool)
 
     def any_stiff(self, dt):
         """Some body may be too stiff for dt to follow (`stiff`): a scene with none launches (and

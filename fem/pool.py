@@ -33,7 +33,7 @@ from fem.implicit.safeguards import Safeguards
 from fem.implicit.sleep import Sleep
 from fem.implicit.solver import ImplicitSolver, Switches
 from fem.measure import Measure
-from fem.model import Capacity, Model, State, stiff_bodies
+from fem.model import Capacity, Model, State
 
 _idle = defaultdict(list)          # (Capacity, Switches) -> Parts nobody uses
 _runtime = [None]                  # the Taichi runtime their fields live in
@@ -56,8 +56,7 @@ def borrow(owner, arrays, effects, settings):
     if _runtime[0] is not ti.lang.impl.get_runtime():     # Taichi restarted: every idle field is gone
         clear()
     capacity = Capacity.fitting(len(X), len(T), len(bodies))
-    key = (capacity, Switches.of(effects, len(X), len(T), bool((free == 0).any()),
-                                 stiff_bodies(bodies, settings.dt).any()))
+    key = (capacity, Switches.of(effects, len(X), len(T), bool((free == 0).any()), bodies, settings.dt))
     parts = _idle[key].pop() if _idle[key] else make(*key)
     parts.model.load(*arrays)
     parts.solver.load(effects, settings)

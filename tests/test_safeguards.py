@@ -275,8 +275,8 @@ def test_a_stiff_body_with_stiffness_damping_is_stepped_not_replaced(request, pr
     """The hard cases' 1 m cube at E 1e9 with alpha 0.1 and beta 0.1, corners pushed at 5 m/s, at
     the default dt 0.02 s and the trapezoidal rule: the damping term took each trial's rotations
     while its gradient held them, the line search found no descent, and 39 of 40 steps took a
-    rigid step instead of the solve's. With the frame held in the search (a stiff body:
-    IncrementalPotential.holds_frame) only the first step (the push's) is trimmed; every later
+    rigid step instead of the solve's. With the frame held in the search (damping that outweighs
+    the body's inertia: IncrementalPotential.holds_frame) only the first step (the push's) is trimmed; every later
     step converges, and the total energy never rises."""
     from dataclasses import replace
 
