@@ -97,10 +97,10 @@ class IncrementalPotential:
         # change over a small step 0.05 to -17 times the slope's prediction once the gradient was small, and
         # 1.000 with beta 0; the line search found no descent and stopped the step unconverged). With
         # contact (where those steps were measured), and where some body's damping outweighs its inertia
-        # (Switches.damping_dominates: a 1 m cube at E 1e9, beta 0.1, pushed at 5 m/s: its solve failed on
-        # 39 of 40 steps, and each took a rigid step; now 1), the line search holds the damping's frame at the iterate it starts from
-        # (held_Bm), so that its E has the gradient's slope; the accepted iterate's E_b is then taken in
-        # its own frame (body_shift), the next search's
+        # (Switches.damping_dominates: a 1 m cube at E 1e9, beta 0.1, pushed at 5 m/s, failed its solve
+        # on 39 of 40 steps, each then a rigid step; now on 1), the line search holds the damping's frame
+        # at the iterate it starts from (held_Bm), so that its E has the gradient's slope; the accepted
+        # iterate's E_b is then taken in its own frame (body_shift), the next search's
         self.holds_frame = switches.stiffness_damping and (switches.contact or switches.damping_dominates)
         if self.holds_frame:
             self.held_Bm = ti.Matrix.field(3, 3, float, model.capacity.tets)
