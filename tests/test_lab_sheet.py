@@ -78,7 +78,7 @@ def test_section_8_the_coursework_fertility_table(method, cggs, tmp_path):
 
 
 # Section 3: cube86 over 50 steps at each nu: CG iterations a step, steps not converged, the soft cube's volume ratio
-SECTION_3 = {0.3: (4.4, 1, "1.011"), 0.45: (12.6, 1, "0.997"), 0.499: (37, 49, "1.0000")}
+SECTION_3 = {0.3: (4.4, 1, "1.011"), 0.45: (12.6, 1, "0.997"), 0.499: (50, 50, "1.0000")}
 ITERATIONS_SPREAD, UNCONVERGED_SPREAD = 0.1, 2
 
 
@@ -96,7 +96,7 @@ def test_section_3_cube86_towards_incompressible(nu):
 
 # Section 4: cube86 at nu 0.4999, 50 steps at each dt: the Newton step's total energy after its first
 # step and at the end (J); the one-solve step's largest energy passes BLOWN_UP J (a blow-up: only that repeats)
-NEWTON_FIRST, NEWTON_END = 1.9, {0.02: 1.56, 0.1: 0.71, 0.5: 0.84}
+NEWTON_FIRST, NEWTON_END = 1.9, {0.02: 1.56, 0.1: 0.71, 0.5: 0.68}
 BLOWN_UP, NEWTON_SPREAD = 1e9, 0.05
 
 

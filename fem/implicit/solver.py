@@ -22,7 +22,7 @@ from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho
 from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
-from fem.implicit.potential import GRADIENT_ROUNDOFF, ROUNDOFF, IncrementalPotential
+from fem.implicit.potential import GRADIENT_ROUNDOFF, ROUNDOFF, IncrementalPotential, damping_dominates
 from fem.implicit.preconditioner import Preconditioner
 from fem.implicit.rotations import Rotations
 from fem.implicit.safeguards import BEFORE, Ending, Safeguards
@@ -93,14 +93,6 @@ class Switches:
         return cls(effects.gravity is not None, effects.ground is not None, effects.beta > 0, has_pins,
                    serial_loops(n_tets, "tets"), serial_loops(n_vertices, "vertices"), effects.contact is not None,
                    damping_dominates(bodies, dt, effects.beta))
-
-
-def damping_dominates(bodies, dt, beta):
-    """Some body's stiffness damping over a step outweighs its inertia, dt beta (lam + 2 mu) >= rho L^2
-    (L its size; bodies: fem.builder's): the hard cases' 1 m cubes at E 1e9 and nu 0.4999 with beta
-    0.1 (897 and 11 at dt 0.02 s), not the built-in scenes (the bunny's 0.019 is their largest)."""
-    return any(dt * beta * (b.material.lame[1] + 2.0 * b.material.lame[0]) >= b.material.density * b.size ** 2
-               for b in bodies)
 
 
 @ti.data_oriented
