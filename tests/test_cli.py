@@ -163,6 +163,24 @@ def test_a_closed_stdout_drops_what_was_meant_for_it(tmp_path):
     assert len((tmp_path / "s.jsonl").read_text().splitlines()) == 2
 
 
+def test_the_summary_says_where_the_linear_solve_stopped_at_its_cap(here):
+    """A linear solve cut short by --max-iters leaves Newton's direction inexact: every such
+    iteration is counted in the stats rows (solver_capped) and the summary says how many of the
+    run's Newton iterations it was; a run whose solves all converged says nothing of it."""
+    code, out, err = run("simulate", "cube86", "--steps", "3", "--max-iters", "1", "--tol", "1e-10",
+                         "--stats", "capped.jsonl")
+    assert code == 0, err
+    rows = [json.loads(line) for line in Path("capped.jsonl").read_text().splitlines()]
+    capped, newton = sum(r["solver_capped"] for r in rows), sum(r["newton_iters"] for r in rows)
+    assert 0 < capped <= newton and all(r["solver_capped"] <= r["newton_iters"] for r in rows)
+    assert not all(r["converged"] for r in rows)
+    assert (f"the linear solve stopped at its cap of 1 iteration, unconverged, in {capped} of {newton} "
+            f"Newton iterations") in out, out
+    code, out, err = run("simulate", "cube86", "--steps", "3", "--stats", "free.jsonl")
+    assert code == 0 and "stopped at its cap" not in out, err
+    assert all(json.loads(line)["solver_capped"] == 0 for line in Path("free.jsonl").read_text().splitlines())
+
+
 @pytest.mark.parametrize("argv, says", [((), "dt 0.02 s, trapezoidal (rho_infinity 0.961) (auto), solver"),   # damped: exp(-dt / 0.5 s)
                                         (("--integrator", "bdf2"), "dt 0.02 s, bdf2, solver")])
 def test_the_summary_names_the_integrator_the_steps_took(here, argv, says):

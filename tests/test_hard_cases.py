@@ -61,7 +61,7 @@ def test_capped_solves_and_non_finite_steps_are_reported(precision, capsys):
     result = forced_failures(lambda: capsys.readouterr().err)
 
     for info in result["capped"]:        # the cap is reported, never hidden
-        assert info["solver_iters"] == 2
+        assert info["solver_iters"] == 2 and info["solver_capped"] == 1
         assert info["converged"] is False
         assert info["residual"] is not None and info["residual"] > 1e-12
         assert info["finite"]

@@ -145,14 +145,14 @@ def test_an_error_quotes_a_short_excerpt_of_a_file_not_its_line(here):
 def test_a_run_whose_every_step_is_rejected_fails_with_a_clear_error(capsys):
     rows = Tally()
     rows += [{"wall_ms": 1.0, "solver_iters": 0, "newton_iters": 0, "converged": False, "finite": False,
-              "energy_limited": 0, "restarted": 0}] * 3
+              "energy_limited": 0, "restarted": 0, "solver_capped": 0}] * 3
     assert check_rejected(rows, 0.02) == 1
     assert capsys.readouterr().err.startswith("error: every one of the 3 steps was rejected")
 
 
 def test_the_summary_counts_rigid_steps_and_backward_euler_restarts():
     rows = Tally()
-    row = {"wall_ms": 1.0, "solver_iters": 1, "newton_iters": 1, "converged": False, "finite": True}
+    row = {"wall_ms": 1.0, "solver_iters": 1, "newton_iters": 1, "converged": False, "finite": True, "solver_capped": 0}
     rows += [dict(row, energy_limited=2, restarted=0), dict(row, energy_limited=0, restarted=1, converged=True),
              dict(row, energy_limited=1, restarted=0)]
     assert fallback_note(rows) == (" (of them 2 with a rigid step instead of the solve's), 1 step by backward "
@@ -163,9 +163,9 @@ def test_the_summary_counts_rigid_steps_and_backward_euler_restarts():
 def test_a_runs_step_records_are_compact_columns():
     rows = Tally()
     rows += [{"wall_ms": 2.0, "solver_iters": 5, "newton_iters": 1, "converged": True, "finite": True,
-              "energy_limited": 0, "restarted": 0, "big": list(range(100))}] * 1000
+              "energy_limited": 0, "restarted": 0, "solver_capped": 0, "big": list(range(100))}] * 1000
     assert len(rows) == 1000 and sum(rows["finite"]) == 1000
-    assert sum(column.itemsize * len(column) for column in rows.columns.values()) < 60_000   # 7 columns
+    assert sum(column.itemsize * len(column) for column in rows.columns.values()) < 70_000   # 8 columns
 
 
 def test_allow_large_lifts_the_size_limits():

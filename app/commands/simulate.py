@@ -114,10 +114,10 @@ def profile_table(rows, compiled_later=()):
 
 class Tally:
     """What the summary needs of every step (time, iterations, converged, finite), kept as
-    compact columns: a million steps take 30 MB, not the 0.8 GB of their stats rows."""
+    compact columns: a million steps take 50 MB, not the 0.8 GB of their stats rows."""
 
     KEYS = {"wall_ms": "d", "solver_iters": "d", "newton_iters": "d", "converged": "b", "finite": "b",
-            "energy_limited": "d", "restarted": "d"}
+            "energy_limited": "d", "restarted": "d", "solver_capped": "d"}
 
     def __init__(self):
         self.columns = {key: array(code) for key, code in self.KEYS.items()}
@@ -207,7 +207,7 @@ def summary(sim, rows):
     lines.append(f"{counted(len(rows), 'step')} to t = {sim.t:.3f} s: {statistics.median(ms):.2f} ms/step (median), "
                  f"{statistics.mean(rows['newton_iters'] or [0]):.1f} Newton and "
                  f"{statistics.mean(iters):.1f} solver iterations/step ({sim.step_kind} step), "
-                 f"{counted(not_converged, 'step')} not converged{fallback_note(rows)}, "
+                 f"{counted(not_converged, 'step')} not converged{fallback_note(rows)}{capped_note(sim, rows)}, "
                  f"{counted(rejected, 'step')} rejected")
     lines.append(f"energy: {energy_terms(sim, final)}; inverted tets {final['inverted_tets']}")
     if sim.solver.switches.contact:
@@ -233,6 +233,15 @@ def fallback_note(rows):
     restarted = sum(1 for n in rows["restarted"] if n > 0)
     return (f" (of them {trimmed} with a rigid step instead of the solve's)" if trimmed else "") + \
         (f", {counted(restarted, 'step')} by backward Euler after a strained body's failed one" if restarted else "")
+
+
+def capped_note(sim, rows):
+    """'; the linear solve stopped at its cap of 400 iterations, unconverged, in 780 of 780 Newton
+    iterations': where some did (solver.max_iterations, --max-iters), which leaves their Newton
+    directions inexact."""
+    capped, newton = int(sum(rows["solver_capped"])), int(sum(rows["newton_iters"]))
+    return (f"; the linear solve stopped at its cap of {counted(sim.settings.max_iterations, 'iteration')}, "
+            f"unconverged, in {capped} of {counted(newton, 'Newton iteration')}") if capped else ""
 
 
 ENERGY_TERMS = (("kinetic", "kinetic_energy"), ("elastic", "elastic_energy"),

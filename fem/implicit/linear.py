@@ -46,6 +46,7 @@ class LinearSolver:
         self.r, self.z, self.p, self.Ap = vec(n), vec(n), vec(n), vec(n)
         self.rz = ti.field(float, ())
         self.rr = ti.field(float, ())
+        self.capped = False           # the last solve stopped at max_iterations, unconverged
         self.cg_beta = ti.field(float, ())
         self.iterations = ti.field(ti.i32, ())
         self.active = ti.field(ti.i32, ())
@@ -60,21 +61,22 @@ class LinearSolver:
     def solve(self, cM, cK, target, max_iterations, preconditioner):
         """H d = rhs from the first guess in `solution`, until the weighted residual
         sum_b |r_b|^2 w_b <= target; returns the iterations. preconditioner: "jacobi" or
-        "two-level" (PCG), None (Jacobi iteration)."""
+        "two-level" (PCG), None (Jacobi iteration). `capped` <- it stopped at max_iterations unconverged."""
         if preconditioner is not None:
             two_level = preconditioner == "two-level"
             active, iterations = self.start_residual(cM, cK, two_level) > target, 0
             while active:
                 active, iterations = self.cg_iterations(cM, cK, target, max_iterations, CG_UNROLL, two_level)
-            return int(iterations)
-        iterations = 0
-        while iterations < max_iterations:
-            self.elasticity.stiffness_product(self.solution)
-            self.rr[None] = self.jacobi_update(cM, cK, self.omega)
-            iterations += 1
-            if self.rr[None] <= target:
-                break
-        return iterations
+        else:
+            iterations = 0
+            while iterations < max_iterations:
+                self.elasticity.stiffness_product(self.solution)
+                self.rr[None] = self.jacobi_update(cM, cK, self.omega)
+                iterations += 1
+                if self.rr[None] <= target:
+                    break
+        self.capped = iterations >= max_iterations and self.rr[None] > target
+        return int(iterations)
 
     @ti.kernel
     def start_residual(self, cM: float, cK: float, two_level: ti.template()) -> float:

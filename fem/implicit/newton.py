@@ -70,6 +70,7 @@ class Solved:
     solver_iters: int = 0
     halvings: int = 0
     rotation_ms: float = 0.0
+    capped: int = 0          # Newton iterations whose linear solve stopped at max_iterations, unconverged
 
 
 @ti.data_oriented
@@ -130,13 +131,12 @@ class Newton:
                 target = 1.0
             else:
                 target = max(1.0, FORCING ** 2 * out.rho)
-            if self.effects.has_contact and out.newton_iters > 0:
-                # the blocks of the pairs touching now: those of the step's start made PCG's operator
-                # 40 times worse conditioned than H itself once pairs came or went (two_boxes)
+            if self.effects.has_contact and out.newton_iters > 0:   # the blocks of the pairs touching now: the
+                # step's start's made PCG's operator 40 times worse conditioned once pairs came or went (two_boxes)
                 self.linear.preconditioning.build_preconditioner(cM, cK)
             out.solver_iters += self.direction(cM, cK, target, warm and out.newton_iters == 0, scale, settings,
                                                preconditioner)
-            out.newton_iters += 1
+            out.newton_iters, out.capped = out.newton_iters + 1, out.capped + int(self.linear.capped)
             largest = 1.0
             if self.effects.has_contact:                      # the pairs the search may meet; how far it may go
                 largest = self.effects.contact.prepare_search(p.x, self.linear.solution, h)
@@ -172,7 +172,7 @@ class Newton:
         out = Solved(rho=p.gradient(p.v0, p.x, p.v, h, tolerance, True, self.from_guess))
         if out.rho > 1.0:
             out.solver_iters = self.direction(cM, cK, 1.0, True, scale, settings, preconditioner)
-            out.newton_iters = 1
+            out.newton_iters, out.capped = 1, int(self.linear.capped)
             out.rho = float(self.linear.rr[None])
             self.try_step(h, 0)
         return out

@@ -45,6 +45,7 @@ class StepInfo:
         round-off floor (float32, near-incompressible or stiff bodies): residual > tolerance.
     newton_iters: Newton iterations (1 for a single step).
     solver_iters: CG or Jacobi iterations summed over the Newton iterations.
+    solver_capped: Newton iterations whose linear solve stopped at max_iterations, unconverged.
     line_search_steps: step halvings summed over the Newton iterations.
     energy_limited: bodies trimmed: a rise the energy projection could not pay for, where the
         body took a rigid step instead (fem/implicit/safeguards.py). The projection itself (onto
@@ -70,6 +71,7 @@ class StepInfo:
     integrator: str = "backward-euler"    # the step's own: a two-step integrator restarts with backward Euler
     restarted: int = 0
     at_floor: bool = False
+    solver_capped: int = 0
 
 
 @dataclass(frozen=True)
@@ -262,7 +264,7 @@ class ImplicitSolver:
                         residual=residual if math.isfinite(residual) else None,
                         newton_iters=max(solved.newton_iters, 1), solver_iters=solved.solver_iters,
                         line_search_steps=solved.halvings, energy_limited=trimmed, rotation_ms=rotation_ms,
-                        solve_ms=wall_ms - rotation_ms, restarted=int(restarted))
+                        solve_ms=wall_ms - rotation_ms, restarted=int(restarted), solver_capped=solved.capped)
 
     def energy_momentum_solve(self, state_in, cM, cK, h, rho, tolerance, scale, settings):
         """The energy-momentum step: Newton minimises the trapezoidal potential whose v^ the
@@ -288,6 +290,7 @@ class ImplicitSolver:
                 again.solver_iters += solved.solver_iters
                 again.halvings += solved.halvings
                 again.rotation_ms += solved.rotation_ms
+                again.capped += solved.capped
             solved = again
             error = em.energy_error(state_in.x, 2.0 * h) if done and tolerance > floor else 0.0
             if error > 1.0:                         # the deformation's energy asks for a closer answer
