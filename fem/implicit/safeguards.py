@@ -42,6 +42,7 @@ Fields (bodies of the capacity; energies summed in float64):
     body_spin_new (bodies, 3)    1/s: the spin it ends with (the conserving scheme: I^-1 L_n)
     body_shift_vector (bodies, 3)  m: a rigid step's move of the centre
     body_fallback (bodies,)      1: trimmed this step (`fall_back`)
+    body_failed (bodies,)        1: its solve failed this step, a rise beyond round-off (`strained`)
     body_touching (bodies,)      1: pressed into the ground at the step's start or end (`find_contacts`)
     body_speed (bodies,)         a trimmed body's velocity factor on the ground (`slowed`)
     body_kinetic_before (bodies,)  J: its kinetic energy BEFORE the step
@@ -131,6 +132,7 @@ class Safeguards(Fallback, InternalMove):
         self.body_elastic = ti.field(ti.f64, nb)
         self.body_spin_before = ti.Vector.field(3, ti.f64, nb)
         self.body_fallback = ti.field(ti.i32, nb)
+        self.body_failed = ti.field(ti.i32, nb)
         self.body_touching = ti.field(ti.i32, nb)
         self.body_spin_new = ti.Vector.field(3, ti.f64, nb)
         self.body_shift_vector = ti.Vector.field(3, ti.f64, nb)
@@ -398,7 +400,7 @@ class Safeguards(Fallback, InternalMove):
                 if not conserve and excess > FAILED * K:
                     spin = 0.5 * omega.dot(self.body_inertia[b] @ omega)
             lam = ti.cast(0.0, ti.f64)
-            self.body_fallback[b] = 0
+            self.body_fallback[b], self.body_failed[b] = 0, 0
             paid = excess
             # a rise within what the solve's tolerance leaves (`solve_band`) is no failed solve, on a body
             # whose positions may not pay (two_boxes falling, f64: 4e-10 to 9e-8 J, a band of 2e-6 to 2e-5)
@@ -416,7 +418,7 @@ class Safeguards(Fallback, InternalMove):
                 # a body at rest (no gravity: terms of size 0) whose energy rose by round-off
                 # takes the rigid step too, which keeps it still, but no solve failed there
                 if excess > allowance + self.body_quiet[b] * self.potential.body_far[b]:
-                    trimmed += 1
+                    trimmed, self.body_failed[b] = trimmed + 1, 1
                 self.body_speed[b] = self.slowed(b, energy)
             if self.body_fallback[b] == 0 and K + spin > 0.0 and ti.abs(excess) > allowance:   # round-off is not chased
                 # the smaller root, in the form that does not cancel
