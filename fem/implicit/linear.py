@@ -8,7 +8,8 @@ constraints. Two solvers:
   kernel launch (up to SERIAL_UNROLL where every loop runs on one thread, a small mesh),
   with the scalar steps on the device and the direction update fused into
   the stiffness pass; the iterates are those of textbook PCG.
-- Weighted block-Jacobi iteration, d += omega D^-1 (rhs - H d), omega from H's spectrum.
+- Weighted block-Jacobi iteration, d += omega D^-1 (rhs - H d), omega from H's spectrum
+  (up to SERIAL_UNROLL iterations a launch on a small mesh).
 
 Both stop once the weighted residual sum_b w_b |r_b|^2 (w_b: IncrementalPotential.body_weight)
 reaches the target, or at the iteration cap.
@@ -29,6 +30,7 @@ from fem import runtime
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
 SERIAL_UNROLL = 32       # at most this many where the launch runs them in a loop of its own (`cg_iterations`)
 TWO_I32 = ti.types.vector(2, ti.i32)
+TWO_F64 = ti.types.vector(2, ti.f64)
 
 
 @ti.data_oriented
@@ -70,13 +72,17 @@ class LinearSolver:
             while active:
                 active, iterations = self.cg_iterations(cM, cK, target, max_iterations, CG_UNROLL, two_level)
         else:
-            iterations = 0
-            while iterations < max_iterations:
-                self.elasticity.stiffness_product(self.solution)
-                self.rr[None] = self.jacobi_update(cM, cK, self.omega)
-                iterations += 1
-                if self.rr[None] <= target:
-                    break
+            iterations, rr = 0, float("inf")
+            while iterations < max_iterations and not rr <= target:
+                if self.serial_tets and self.serial_vertices:     # a small mesh: many iterations a launch
+                    done, rr = self.jacobi_iterations(cM, cK, self.omega, target,
+                                                      min(SERIAL_UNROLL, max_iterations - iterations))
+                    iterations += int(done)
+                else:
+                    self.elasticity.stiffness_product(self.solution)
+                    rr = self.jacobi_update(cM, cK, self.omega)
+                    iterations += 1
+            self.rr[None] = rr
         self.capped = iterations >= max_iterations and self.rr[None] > target
         return int(iterations)
 
@@ -190,6 +196,26 @@ class LinearSolver:
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
         """d += omega P (rhs - H d) (after stiffness_product(d)). Returns the weighted
         |rhs - H d|^2 before the update."""
+        return self.jacobi_pass(cM, cK, omega)
+
+    @ti.kernel
+    def jacobi_iterations(self, cM: float, cK: float, omega: float, target: ti.f64, most: ti.i32) -> TWO_F64:
+        """Up to `most` Jacobi iterations in one launch, each `stiffness_pass` then `jacobi_pass`,
+        on one thread (a small mesh); stops after the first whose residual before it is <= target.
+        Returns (iterations, that residual)."""
+        done, rr = 0, ti.cast(0.0, ti.f64)
+        ti.loop_config(serialize=True)
+        for _ in range(most):
+            self.elasticity.stiffness_pass(self.solution)
+            rr = ti.cast(self.jacobi_pass(cM, cK, omega), ti.f64)
+            done += 1
+            if rr <= target:
+                break
+        return ti.Vector([done, rr], ti.f64)
+
+    @ti.func
+    def jacobi_pass(self, cM, cK, omega):
+        """`jacobi_update`, inside another kernel."""
         rr = 0.0
         if ti.static(self.effects.has_contact):
             self.effects.contact.product_pass(self.solution, self.solution, 0.0, 1)
