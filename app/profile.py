@@ -138,7 +138,8 @@ def profile_steps(sim, kind, warmup, steps):
 
 def launches_note(table):
     """One line: device tasks per step, and per PCG iteration those of the PCG kernels
-    (cg_iterations runs CG_UNROLL iterations a launch; start_residual once a solve)."""
+    (cg_iterations runs CG_UNROLL iterations a launch, up to SERIAL_UNROLL on a small mesh whose
+    loops run on one thread; start_residual once a solve)."""
     per_step = sum(r["tasks"] for r in table["rows"]) / table["steps"]
     cg = sum(r["tasks"] for r in table["rows"] if r["kernel"] == "cg_iterations")
     iterations = table["cg_iterations"]

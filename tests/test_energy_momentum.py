@@ -132,8 +132,9 @@ def test_a_stiff_spinning_body_is_stepped_not_replaced(request, precision, E, nu
     50 steps (the cube at E 1e8) and 100 of 100 (the top at E 1e10) by rigid steps that reported
     `converged`. Now every step converges, none is trimmed, and energy (kinetic plus numpy's
     corotated energy) and angular momentum about the centre, from the states, stay those of the
-    start over 2 s: to 1e-8 and 1e-12 in float64, 1e-4 and 1e-6 in float32 (round-off of float32
-    positions and velocities, summed in float64)."""
+    start over 2 s: to 1e-8 and 1e-12 in float64, 5e-4 and 1e-6 in float32 (where Newton stops at
+    what float32 resolves, and the answer's energy error is the solve's own: 0.5e-4 to 2.8e-4 on this
+    cube and its neighbours, 10 to 11 rad/s and nu 0.45, docs/method.md section 6)."""
     request.getfixturevalue(precision)
     omega = (0.0, 0.0, 10.0) if shape == "cube" else (1.0, 10.0, 3.0)
     sim, reference = spinning(E, nu, shape, omega)
@@ -141,7 +142,7 @@ def test_a_stiff_spinning_body_is_stepped_not_replaced(request, precision, E, nu
     for _ in range(100):
         info = sim.step()
         assert info["converged"] and not info["energy_limited"] and not info["restarted"], info
-    energy, spin = (1e-8, 1e-12) if precision == "f64" else (1e-4, 1e-6)
+    energy, spin = (1e-8, 1e-12) if precision == "f64" else (5e-4, 1e-6)
     assert abs(total_energy(sim, reference) - E0) <= energy * E0
     assert np.linalg.norm(angular_momentum(sim) - L0) <= spin * np.linalg.norm(L0)
 

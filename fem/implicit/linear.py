@@ -5,7 +5,8 @@ values (fem/implicit/elasticity.py) and each vertex gathers its own, filtered by
 constraints. Two solvers:
 
 - PCG, preconditioned by fem/implicit/preconditioner.py. CG_UNROLL iterations run in one
-  kernel launch, with the scalar steps on the device and the direction update fused into
+  kernel launch (up to SERIAL_UNROLL where every loop runs on one thread, a small mesh),
+  with the scalar steps on the device and the direction update fused into
   the stiffness pass; the iterates are those of textbook PCG.
 - Weighted block-Jacobi iteration, d += omega D^-1 (rhs - H d), omega from H's spectrum
   (up to SERIAL_UNROLL iterations a launch on a small mesh).
@@ -27,7 +28,7 @@ import taichi as ti
 from fem import runtime
 
 CG_UNROLL = 2            # PCG iterations per kernel launch: fewer launches, same iterates
-SERIAL_UNROLL = 32       # Jacobi iterations a launch where they run in a loop of its own (`jacobi_iterations`)
+SERIAL_UNROLL = 32       # at most this many where the launch runs them in a loop of its own (`cg_iterations`)
 TWO_I32 = ti.types.vector(2, ti.i32)
 TWO_F64 = ti.types.vector(2, ti.f64)
 
@@ -115,67 +116,81 @@ class LinearSolver:
     @ti.kernel
     def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template(),
                       two_level: ti.template()) -> TWO_I32:
-        """Up to `unroll` PCG iterations in one launch.
+        """Up to `unroll` PCG iterations in one launch (SERIAL_UNROLL where every loop runs on one thread).
 
-        Each iteration is three parallel passes (tets: K d; vertices: p, Ap and p.Ap;
-        vertices: d, r, z and r.z, weighted r.r; two-level: z and r.z in three more,
-        `Preconditioner.two_level_precondition`) with the scalar steps between them run
-        serially on the device. Once the weighted |r|^2 <= target or `cap` iterations are
-        done, `active` drops to 0 and the remaining passes loop over nothing, so the
-        iteration count is exact while Python launches one kernel per `unroll`. Returns
-        (`active`, the iterations so far).
+        Each iteration is three passes (tets: K d; vertices: p, Ap and p.Ap; vertices: d, r, z
+        and r.z, weighted r.r; two-level: z and r.z in three more, `Preconditioner.two_level_precondition`)
+        with the scalar steps between them. Parallel passes are top-level loops, so the launch
+        repeats them `unroll` times in its code; once the weighted |r|^2 <= target or `cap`
+        iterations are done, `active` drops to 0 and the remaining passes loop over nothing, so
+        the iteration count is exact. Where every loop runs on one thread (a small mesh, block
+        Jacobi) the iterations are a loop of the launch itself, which stops when PCG does: a
+        launch costs more than an iteration there (the ground drops of tests/test_energy.py: 270
+        vertices, 400 iterations a solve). Returns (`active`, the iterations so far).
         """
+        if ti.static(self.serial_tets and self.serial_vertices and not two_level and not self.capacity_loops):
+            ti.loop_config(serialize=True)
+            for _ in range(SERIAL_UNROLL):
+                if not self.active[None]:
+                    break
+                self.cg_iteration(cM, cK, target, cap, two_level)
+        else:
+            for _ in ti.static(range(unroll)):
+                self.cg_iteration(cM, cK, target, cap, two_level)
+        return ti.Vector([self.active[None], self.iterations[None]], ti.i32)
+
+    @ti.func
+    def cg_iteration(self, cM, cK, target, cap, two_level: ti.template()):
+        """One PCG iteration (none once `active` is 0): `cg_iterations`."""
         n_tets, n = self.model.tet_count[None], self.model.vertex_count[None]
         fixed = ti.static(self.capacity_loops)
         all_tets, all_vertices = ti.static(self.model.capacity.tets, self.model.capacity.vertices)
-        for _ in ti.static(range(unroll)):
-            on = self.active[None]
-            beta = self.cg_beta[None]
-            tets, vertices = n_tets * on, n * on
-            ti.loop_config(serialize=self.serial_tets)
-            for e in range(all_tets if fixed else tets):
-                if e < tets and self.sleep.tet_awake(e):
-                    self.elasticity.tet_stiffness(e, self.z, self.p, beta)
-            if ti.static(self.effects.has_contact):
-                self.effects.contact.product_pass(self.z, self.p, beta, on)
-            pAp = 0.0
-            ti.loop_config(serialize=self.serial_vertices)
-            for i in range(all_vertices if fixed else vertices):
-                if i >= vertices:
-                    continue
-                p = self.z[i] + beta * self.p[i]
-                self.p[i] = p
-                Ap = self.potential.apply_H(i, self.p, cM, cK)
-                self.Ap[i] = Ap
-                pAp += p.dot(Ap)
-            step = 0.0
-            if pAp > 0:
-                step = self.rz[None] / pAp
-            rz, rr = 0.0, 0.0
-            ti.loop_config(serialize=self.serial_vertices)
-            for i in range(all_vertices if fixed else vertices):
-                if i >= vertices:
-                    continue
-                self.solution[i] += step * self.p[i]
-                r = self.r[i] - step * self.Ap[i]
-                self.r[i] = r
-                if ti.static(not two_level):              # block Jacobi: z in the same pass
-                    z = self.effects.filtered(i, self.preconditioning.jacobi(i, r))
-                    self.z[i] = z
-                    rz += r.dot(z)
-                rr += self.potential.body_weight[self.model.vertex_body[i]] * r.dot(r)
-            if ti.static(two_level):
-                rz = self.preconditioning.two_level_precondition(self.r, self.z, on)
-            if on:
-                self.cg_beta[None] = 0.0
-                if self.rz[None] > 0:
-                    self.cg_beta[None] = rz / self.rz[None]
-                self.rz[None] = rz
-                self.rr[None] = rr
-                self.iterations[None] += 1
-                if not (rr > target and self.iterations[None] < cap):
-                    self.active[None] = 0
-        return ti.Vector([self.active[None], self.iterations[None]], ti.i32)
+        on = self.active[None]
+        beta = self.cg_beta[None]
+        tets, vertices = n_tets * on, n * on
+        ti.loop_config(serialize=self.serial_tets)
+        for e in range(all_tets if fixed else tets):
+            if e < tets and self.sleep.tet_awake(e):
+                self.elasticity.tet_stiffness(e, self.z, self.p, beta)
+        if ti.static(self.effects.has_contact):
+            self.effects.contact.product_pass(self.z, self.p, beta, on)
+        pAp = 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(all_vertices if fixed else vertices):
+            if i >= vertices:
+                continue
+            p = self.z[i] + beta * self.p[i]
+            self.p[i] = p
+            Ap = self.potential.apply_H(i, self.p, cM, cK)
+            self.Ap[i] = Ap
+            pAp += p.dot(Ap)
+        step = 0.0
+        if pAp > 0:
+            step = self.rz[None] / pAp
+        rz, rr = 0.0, 0.0
+        ti.loop_config(serialize=self.serial_vertices)
+        for i in range(all_vertices if fixed else vertices):
+            if i >= vertices:
+                continue
+            self.solution[i] += step * self.p[i]
+            r = self.r[i] - step * self.Ap[i]
+            self.r[i] = r
+            if ti.static(not two_level):              # block Jacobi: z in the same pass
+                z = self.effects.filtered(i, self.preconditioning.jacobi(i, r))
+                self.z[i] = z
+                rz += r.dot(z)
+            rr += self.potential.body_weight[self.model.vertex_body[i]] * r.dot(r)
+        if ti.static(two_level):
+            rz = self.preconditioning.two_level_precondition(self.r, self.z, on)
+        if on:
+            self.cg_beta[None] = 0.0
+            if self.rz[None] > 0:
+                self.cg_beta[None] = rz / self.rz[None]
+            self.rz[None] = rz
+            self.rr[None] = rr
+            self.iterations[None] += 1
+            if not (rr > target and self.iterations[None] < cap):
+                self.active[None] = 0
 
     @ti.kernel
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:
