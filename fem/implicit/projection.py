@@ -169,16 +169,18 @@ class InternalMove:
         # (a solve that did not converge promises no tolerance: its band is 0)
 
     @ti.func
-    def band(self, b, K, conserve):
+    def band(self, b, K, conserve, rise):
         """The rise body b's solve may leave (J): `solve_band`'s, and under the conserving scheme the
         share of the round-off floors its gradient converged within (potential.allowed), |r_floor|^2 <=
         floor_b: the energy-momentum step changes the energy by exactly -sum r . (x - x_n) / dt, and
         the rigid motion's share is put right, so what is left is |r . w| <= |r|_M^-1 |w|_M <=
         sqrt(2 floor_b K_w / m_min), w the deformation's velocities (K_w their kinetic energy). A
         stiff float32 body stops at what float32 resolves: the 0.5 m cube at E 1e8 spinning at 10.3
-        rad/s took a rigid step on 23 of 100 steps for it (docs/method.md, section 6)."""
+        rad/s took a rigid step on 23 of 100 steps for it (docs/method.md, section 6). Not for a rise
+        (above round-off's allowance) within what round-off gives a body at rest (`body_quiet`): its
+        rigid step keeps it still, where the step's round-off motion would cost a solve each step after."""
         tol, out = self.solve_tolerance[None], self.body_move[b][3]
-        if conserve and tol > 0:
+        if conserve and tol > 0 and rise > self.body_quiet[b] * self.potential.body_far[b]:
             floor = self.potential.allowed(b, tol) - tol * tol * self.potential.body_scale[b]
             out += ti.sqrt(2.0 * ti.max(floor, 0.0) * self.body_lightest[b] * ti.max(K, 0.0))
         return out

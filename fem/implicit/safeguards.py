@@ -404,7 +404,8 @@ class Safeguards(Fallback, InternalMove):
             paid = excess
             # a rise within what the solve's tolerance leaves (`solve_band`) is no failed solve, on a body
             # whose positions may not pay (two_boxes falling, f64: 4e-10 to 9e-8 J, a band of 2e-6 to 2e-5)
-            within = excess > FAILED * (K + spin) and excess <= allowance + self.band(b, K, conserve)
+            band = self.band(b, K, conserve, excess - allowance)
+            within = excess > FAILED * (K + spin) and excess <= allowance + band
             if within and (final or not self.movable(b)):
                 paid = FAILED * (K + spin)             # the rest is the solve's own error (`solve_band`)
             elif excess > FAILED * (K + spin) and excess > allowance and final == 0 and self.movable(b):
