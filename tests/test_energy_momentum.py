@@ -171,7 +171,7 @@ def test_a_stiff_spinning_body_under_mass_damping_slows_as_the_drag_says(f64, E)
 @pytest.mark.parametrize("E, nu, w", [(1e8, 0.3, 10.3), (1e8, 0.3, 11.0), (1e8, 0.45, 10.0), (1e8, 0.45, 10.5)])
 def test_a_float32_stiff_body_at_its_round_off_floor_takes_no_rigid_step(f32, E, nu, w):
     """A stiff float32 body's Newton stops at what float32 resolves (its gradient below the round-off
-    floor, potential.allowed), and the energy error that answer leaves is the solve's own error, no
+    floor, potential.gradient_norm), and the energy error that answer leaves is the solve's own error, no
     failed solve (InternalMove.band: under the conserving scheme the band holds the floor's share,
     sqrt(2 floor K_w / m_min)). Before, the band held tol^2 s_b^2 / m_min alone, and the neighbours
     of the case above took rigid steps (in the tests' build): the 0.5 m cube at E 1e8 spinning at

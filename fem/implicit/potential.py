@@ -337,12 +337,6 @@ class IncrementalPotential:
             self.body_floor[b] = self.body_near_floor[b] * far
 
     @ti.func
-    def allowed(self, b, tolerance):
-        """The |grad_b|^2 body b converges within, (N s)^2: tol^2 s_b^2 and what round-off leaves, its
-        own floor and the contact pairs'."""
-        return tolerance * tolerance * self.body_scale[b] + self.body_floor[b] + self.effects.round_off(b)
-
-    @ti.func
     def gradient_norm(self, tolerance, first, moving):
         """max_b |grad_b|^2 / (tol^2 s_b^2 + floor_b): <= 1 exactly when every body has
         converged, relative to its own scale s_b or below its round-off floor. (Their sum was
@@ -357,7 +351,7 @@ class IncrementalPotential:
         self.relative[None] = 0.0
         ti.loop_config(serialize=True)
         for b in range(self.model.body_count[None]):
-            allowed = self.allowed(b, tolerance)
+            allowed = tolerance * tolerance * self.body_scale[b] + self.body_floor[b] + self.effects.round_off(b)
             self.body_weight[b] = ti.cast(1.0 / allowed, float)
             if self.body_scale[b] > 0.0:
                 self.relative[None] = ti.max(self.relative[None], self.body_gradient[b] / self.body_scale[b])

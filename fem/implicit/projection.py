@@ -171,7 +171,7 @@ class InternalMove:
     @ti.func
     def band(self, b, K, conserve, rise):
         """The rise body b's solve may leave (J): `solve_band`'s, and under the conserving scheme the
-        share of the round-off floors its gradient converged within (potential.allowed), |r_floor|^2 <=
+        share of the round-off floors its gradient converged within (potential.gradient_norm), |r_floor|^2 <=
         floor_b: the energy-momentum step changes the energy by exactly -sum r . (x - x_n) / dt, and
         the rigid motion's share is put right, so what is left is |r . w| <= |r|_M^-1 |w|_M <=
         sqrt(2 floor_b K_w / m_min), w the deformation's velocities (K_w their kinetic energy). A
@@ -181,8 +181,8 @@ class InternalMove:
         rigid step keeps it still, where the step's round-off motion would cost a solve each step after."""
         tol, out = self.solve_tolerance[None], self.body_move[b][3]
         if conserve and tol > 0 and rise > self.body_quiet[b] * self.potential.body_far[b]:
-            floor = self.potential.allowed(b, tol) - tol * tol * self.potential.body_scale[b]
-            out += ti.sqrt(2.0 * ti.max(floor, 0.0) * self.body_lightest[b] * ti.max(K, 0.0))
+            floor = self.potential.body_floor[b] + self.effects.round_off(b)
+            out += ti.sqrt(2.0 * floor * self.body_lightest[b] * ti.max(K, 0.0))
         return out
 
     @ti.func
