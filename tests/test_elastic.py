@@ -78,7 +78,7 @@ def assembled_matrix(sim, cM, cK, x):
     rows, cols, vals = [], [], []
     R_all = exact_rotations(m, x) if m.any_corotational else np.tile(np.eye(3), (m.n_tets, 1, 1))
     for e, tet in enumerate(m.tets_np):
-        b = m.bodies[0].material
+        b = m.bodies[m.tet_body_np[e]].material
         Rb = np.kron(np.eye(4), R_all[e])
         Ke = Rb @ reference_Ke(m.rest_positions_np[tet], b.E, b.nu) @ Rb.T
         dofs = (3 * tet[:, None] + np.arange(3)).ravel()

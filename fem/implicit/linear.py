@@ -12,7 +12,12 @@ constraints. Two solvers:
   (up to SERIAL_UNROLL iterations a launch on a small mesh).
 
 Both stop once the weighted residual sum_b w_b |r_b|^2 (w_b: IncrementalPotential.body_weight)
-reaches the target, or at the iteration cap.
+reaches the target, or at the iteration cap. On a small mesh whose bodies nothing couples (no
+contact between them), each body runs PCG of its own (`body_iteration`): H is then block
+diagonal by body, and PCG's scalars shared over the blocks make one polynomial serve every
+body's spectrum at once, a stiff body's holding back a soft one's (the ground drops of
+tests/test_energy.py: 400 iterations a solve, the cap, where the stiffest body alone took 37).
+Each body stops at the target on its own weighted residual, as Newton's test is each body's own.
 
 Fields (n vertices of the capacity):
     solution (n, 3)      d, m/s: the first guess in, the direction out
@@ -20,6 +25,9 @@ Fields (n vertices of the capacity):
     rz, rr, cg_beta ()   PCG's scalars r.z, weighted r.r and beta, kept on the device
     iterations ()        PCG iterations of this solve
     active ()            1 while PCG iterates
+    body_rz, body_rr, body_pAp, body_next, body_beta (bodies,)
+                         each body's own PCG scalars (r.z, weighted r.r, p.Ap, the next r.z, beta)
+    body_active (bodies,)  1 while that body's PCG iterates
 """
 
 import numpy as np
@@ -54,6 +62,13 @@ class LinearSolver:
         self.cg_beta = ti.field(float, ())
         self.iterations = ti.field(ti.i32, ())
         self.active = ti.field(ti.i32, ())
+        # every loop on one thread and no pairs coupling bodies: each body its own PCG (`body_iteration`)
+        self.separate = (switches.serial_tets and switches.serial_vertices and not switches.contact
+                         and not self.capacity_loops)
+        nb = model.capacity.bodies if self.separate else 1
+        self.body_rz, self.body_rr, self.body_pAp = ti.field(float, nb), ti.field(float, nb), ti.field(float, nb)
+        self.body_next, self.body_beta = ti.field(float, nb), ti.field(float, nb)
+        self.body_active = ti.field(ti.i32, nb)
 
     def load(self):
         self.omega_key, self.omega = None, None               # Jacobi iteration's weight, and its (cM, cK)
@@ -62,15 +77,19 @@ class LinearSolver:
         """The materials or dt changed: the next Jacobi iteration finds its weight again."""
         self.omega_key = None
 
-    def solve(self, cM, cK, target, max_iterations, preconditioner):
+    def solve(self, cM, cK, target, max_iterations, preconditioner, forcing=0.0):
         """H d = rhs from the first guess in `solution`, until the weighted residual
         sum_b |r_b|^2 w_b <= target; returns the iterations. preconditioner: "jacobi" or
-        "two-level" (PCG), None (Jacobi iteration). `capped` <- it stopped at max_iterations unconverged."""
+        "two-level" (PCG), None (Jacobi iteration). `capped` <- it stopped at max_iterations unconverged.
+        forcing: inexact Newton's factor (Newton.solve's target is max(1, forcing rho), rho its
+        largest body's); where each body runs its own PCG, each stops at max(1, forcing rho_b), its own
+        (IncrementalPotential.body_ratio): a stalled body's rho let every other body stop at once."""
         if preconditioner is not None:
             two_level = preconditioner == "two-level"
-            active, iterations = self.start_residual(cM, cK, two_level) > target, 0
+            active, iterations = self.start_residual(cM, cK, target, forcing, two_level) > target, 0
             while active:
-                active, iterations = self.cg_iterations(cM, cK, target, max_iterations, CG_UNROLL, two_level)
+                active, iterations = self.cg_iterations(cM, cK, target, forcing, max_iterations, CG_UNROLL,
+                                                        two_level)
         else:
             iterations, rr = 0, float("inf")
             while iterations < max_iterations and not rr <= target:
@@ -87,9 +106,12 @@ class LinearSolver:
         return int(iterations)
 
     @ti.kernel
-    def start_residual(self, cM: float, cK: float, two_level: ti.template()) -> float:
+    def start_residual(self, cM: float, cK: float, target: float, forcing: ti.f64, two_level: ti.template()) -> float:
         """r <- filtered(rhs) - H d, z <- P r, rz <- r.z, for the first guess d in `solution`.
-        Returns the weighted residual sum_i w_b(i) |r_i|^2."""
+        Returns the weighted residual sum_i w_b(i) |r_i|^2 (each body its own PCG: the largest
+        body's, and those above the target iterate)."""
+        if ti.static(self.separate and not two_level):
+            self.start_bodies()
         self.elasticity.stiffness_pass(self.solution)         # K d, into the corners
         if ti.static(self.effects.has_contact):
             self.effects.contact.product_pass(self.solution, self.solution, 0.0, 1)
@@ -103,6 +125,8 @@ class LinearSolver:
                 z = self.effects.filtered(i, self.preconditioning.jacobi(i, r))
                 self.z[i] = z
                 rz += r.dot(z)
+                if ti.static(self.separate):
+                    self.add_to_body(i, r, z)
             rr += self.potential.body_weight[self.model.vertex_body[i]] * r.dot(r)
         if ti.static(two_level):
             rz = self.preconditioning.two_level_precondition(self.r, self.z, 1)
@@ -111,10 +135,12 @@ class LinearSolver:
         self.cg_beta[None] = 0.0
         self.iterations[None] = 0
         self.active[None] = 1
+        if ti.static(self.separate and not two_level):
+            rr = self.end_bodies(target, forcing, 1)
         return rr
 
     @ti.kernel
-    def cg_iterations(self, cM: float, cK: float, target: float, cap: ti.i32, unroll: ti.template(),
+    def cg_iterations(self, cM: float, cK: float, target: float, forcing: ti.f64, cap: ti.i32, unroll: ti.template(),
                       two_level: ti.template()) -> TWO_I32:
         """Up to `unroll` PCG iterations in one launch (SERIAL_UNROLL where every loop runs on one thread).
 
@@ -128,7 +154,13 @@ class LinearSolver:
         launch costs more than an iteration there (the ground drops of tests/test_energy.py: 270
         vertices, 400 iterations a solve). Returns (`active`, the iterations so far).
         """
-        if ti.static(self.serial_tets and self.serial_vertices and not two_level and not self.capacity_loops):
+        if ti.static(self.separate and not two_level):
+            ti.loop_config(serialize=True)
+            for _ in range(SERIAL_UNROLL):
+                if not self.active[None]:
+                    break
+                self.body_iteration(cM, cK, target, forcing, cap)
+        elif ti.static(self.serial_tets and self.serial_vertices and not two_level and not self.capacity_loops):
             ti.loop_config(serialize=True)
             for _ in range(SERIAL_UNROLL):
                 if not self.active[None]:
@@ -191,6 +223,79 @@ class LinearSolver:
             self.iterations[None] += 1
             if not (rr > target and self.iterations[None] < cap):
                 self.active[None] = 0
+
+    # ------------------------------------------------------------ each body its own PCG (a small mesh, no pairs)
+
+    @ti.func
+    def start_bodies(self):
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            self.body_next[b], self.body_rr[b], self.body_beta[b] = 0.0, 0.0, 0.0
+
+    @ti.func
+    def add_to_body(self, i, r, z):
+        """Vertex i's share of its body's next r.z and weighted r.r."""
+        b = self.model.vertex_body[i]
+        self.body_next[b] += r.dot(z)
+        self.body_rr[b] += self.potential.body_weight[b] * r.dot(r)
+
+    @ti.func
+    def end_bodies(self, target, forcing, cap):
+        """After a pass of `add_to_body`: each iterating body's beta and r.z; a body at its own target
+        stops (`solve`: forcing). Returns the largest body's weighted r.r; `active` <- some body iterates."""
+        largest, iterating = 0.0, 0
+        ti.loop_config(serialize=True)
+        for b in range(self.model.body_count[None]):
+            if self.iterations[None] == 0 or self.body_active[b]:
+                self.body_beta[b] = 0.0
+                if self.body_rz[b] > 0 and self.iterations[None] > 0:
+                    self.body_beta[b] = self.body_next[b] / self.body_rz[b]
+                self.body_rz[b] = self.body_next[b]
+                own = target
+                if forcing > 0:
+                    own = ti.min(target, ti.max(1.0, forcing * self.potential.body_ratio[b]))
+                self.body_active[b] = int(self.body_rr[b] > own)
+            largest = ti.max(largest, self.body_rr[b])
+            iterating += self.body_active[b]
+        self.rr[None] = largest
+        self.active[None] = int(iterating > 0 and self.iterations[None] < cap)
+        return largest
+
+    @ti.func
+    def body_iteration(self, cM, cK, target, forcing, cap):
+        """One PCG iteration of every body still iterating, as `cg_iteration` but each with its own
+        scalars: H p for p = z + beta_b p, the step rz_b / p.Ap_b, then r, z and the body's sums
+        (`add_to_body`, `end_bodies`). A body that has stopped keeps its d and r."""
+        on = ti.static(self.body_active)
+        for b in range(self.model.body_count[None]):
+            if on[b]:
+                self.body_pAp[b], self.body_next[b], self.body_rr[b] = 0.0, 0.0, 0.0
+        for e in range(self.model.tet_count[None]):
+            b = self.model.tet_body[e]
+            if on[b] and self.sleep.tet_awake(e):
+                self.elasticity.tet_stiffness(e, self.z, self.p, self.body_beta[b])
+        for i in range(self.model.vertex_count[None]):
+            b = self.model.vertex_body[i]
+            if on[b]:
+                p = self.z[i] + self.body_beta[b] * self.p[i]
+                self.p[i] = p
+                Ap = self.potential.apply_H(i, self.p, cM, cK)
+                self.Ap[i] = Ap
+                self.body_pAp[b] += p.dot(Ap)
+        for i in range(self.model.vertex_count[None]):
+            b = self.model.vertex_body[i]
+            if on[b]:
+                step = 0.0
+                if self.body_pAp[b] > 0:
+                    step = self.body_rz[b] / self.body_pAp[b]
+                self.solution[i] += step * self.p[i]
+                r = self.r[i] - step * self.Ap[i]
+                self.r[i] = r
+                z = self.effects.filtered(i, self.preconditioning.jacobi(i, r))
+                self.z[i] = z
+                self.add_to_body(i, r, z)
+        self.iterations[None] += 1
+        self.end_bodies(target, forcing, cap)
 
     @ti.kernel
     def jacobi_update(self, cM: float, cK: float, omega: float) -> float:

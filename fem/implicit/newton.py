@@ -127,15 +127,13 @@ class Newton:
         # without, 10.0 -> 8.7 ms)
         quadratic = frozen or not self.model.any_corotational
         while out.rho > 1.0 and out.newton_iters < settings.max_newton:
-            if quadratic or self.from_guess:
-                target = 1.0
-            else:
-                target = max(1.0, FORCING ** 2 * out.rho)
+            forcing = 0.0 if quadratic or self.from_guess else FORCING ** 2
+            target = max(1.0, forcing * out.rho)
             if self.effects.has_contact and out.newton_iters > 0:   # the blocks of the pairs touching now: the
                 # step's start's made PCG's operator 40 times worse conditioned once pairs came or went (two_boxes)
                 self.linear.preconditioning.build_preconditioner(cM, cK)
             out.solver_iters += self.direction(cM, cK, target, warm and out.newton_iters == 0, scale, settings,
-                                               preconditioner)
+                                               preconditioner, forcing)
             out.newton_iters, out.capped = out.newton_iters + 1, out.capped + int(self.linear.capped)
             largest = 1.0
             if self.effects.has_contact:                      # the pairs the search may meet; how far it may go
@@ -177,11 +175,12 @@ class Newton:
             self.try_step(h, 0)
         return out
 
-    def direction(self, cM, cK, target, warm, scale, settings, preconditioner):
-        """d <- the solution of H d = -grad E to the weighted residual `target`, from the
-        extrapolated guess (warm) or 0; returns the linear solver's iterations."""
+    def direction(self, cM, cK, target, warm, scale, settings, preconditioner, forcing=0.0):
+        """d <- the solution of H d = -grad E to the weighted residual `target` (forcing: inexact
+        Newton's, LinearSolver.solve), from the extrapolated guess (warm) or 0; returns the linear
+        solver's iterations."""
         self.start_direction(int(warm))
-        return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner)
+        return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner, forcing)
 
     def rotate(self, settings, frozen=False):
         """The rotations at the trial iterate (unless frozen); returns their ms."""

@@ -37,6 +37,7 @@ Fields (n vertices, bodies of the capacity):
     body_far (bodies,)    max(1, D^2 / L^2), D the body's root-mean-square distance from the origin at the
                           step's first iterate: positions carry round-off relative to D, not to L
     body_weight (bodies,) 1 / (tol^2 s_b^2 + floor_b): weights of the residuals' norm
+    body_ratio (bodies,)  |grad_b|^2 body_weight: the body's own rho (<= 1: converged)
     relative ()           max_b |grad_b|^2 / s_b^2 at the last iterate: the squared relative
                           residual, with no floor (what StepInfo.residual reports)
     held_Bm (m, 3x3)      with contact and stiffness damping: Bm R^T of the accepted Newton iterate, the
@@ -98,6 +99,7 @@ class IncrementalPotential:
         self.body_size_sq = ti.field(ti.f64, nb)
         self.body_far = ti.field(ti.f64, nb)
         self.body_weight = ti.field(float, nb)
+        self.body_ratio = ti.field(ti.f64, nb)
         self.relative = ti.field(ti.f64, ())
         self.rate_from_start = ti.field(ti.i32, ())       # 1: backward Euler's damping (`turn_rate`)
         # The damping term h/2 v^T beta K(R) v is taken with R at the iterate, but its gradient, h beta K(R) v,
@@ -358,6 +360,7 @@ class IncrementalPotential:
             ratio = self.body_gradient[b] / allowed
             if first and self.body_momentum[b] > self.body_floor[b] and not moving:
                 ratio += 2.0
+            self.body_ratio[b] = ratio
             rho = ti.max(rho, ratio)
             total += ratio
         return rho + 0.0 * total           # max drops a NaN; the sum keeps it (a broken step stays broken)
