@@ -13,7 +13,7 @@ constraints. Two solvers:
 
 Both stop once the weighted residual sum_b w_b |r_b|^2 (w_b: IncrementalPotential.body_weight)
 reaches the target, or at the iteration cap. On a small mesh whose bodies nothing couples (no
-contact between them), each body runs PCG of its own (`body_iteration`): H is then block
+contact between them; two bodies or more), each body runs PCG of its own (`body_iteration`): H is then block
 diagonal by body, and PCG's scalars shared over the blocks make one polynomial serve every
 body's spectrum at once, a stiff body's holding back a soft one's (the ground drops of
 tests/test_energy.py: 400 iterations a solve, the cap, where the stiffest body alone took 37).
@@ -86,10 +86,11 @@ class LinearSolver:
         (IncrementalPotential.body_ratio): a stalled body's rho let every other body stop at once."""
         if preconditioner is not None:
             two_level = preconditioner == "two-level"
-            active, iterations = self.start_residual(cM, cK, target, forcing, two_level) > target, 0
+            apart = self.separate and len(self.model.bodies) > 1 and not two_level   # one body: PCG as it was
+            active, iterations = self.start_residual(cM, cK, target, forcing, two_level, apart) > target, 0
             while active:
                 active, iterations = self.cg_iterations(cM, cK, target, forcing, max_iterations, CG_UNROLL,
-                                                        two_level)
+                                                        two_level, apart)
         else:
             iterations, rr = 0, float("inf")
             while iterations < max_iterations and not rr <= target:
@@ -106,11 +107,12 @@ class LinearSolver:
         return int(iterations)
 
     @ti.kernel
-    def start_residual(self, cM: float, cK: float, target: float, forcing: ti.f64, two_level: ti.template()) -> float:
+    def start_residual(self, cM: float, cK: float, target: float, forcing: ti.f64, two_level: ti.template(),
+                       apart: ti.template()) -> float:
         """r <- filtered(rhs) - H d, z <- P r, rz <- r.z, for the first guess d in `solution`.
         Returns the weighted residual sum_i w_b(i) |r_i|^2 (each body its own PCG: the largest
         body's, and those above the target iterate)."""
-        if ti.static(self.separate and not two_level):
+        if ti.static(apart):
             self.start_bodies()
         self.elasticity.stiffness_pass(self.solution)         # K d, into the corners
         if ti.static(self.effects.has_contact):
@@ -125,7 +127,7 @@ class LinearSolver:
                 z = self.effects.filtered(i, self.preconditioning.jacobi(i, r))
                 self.z[i] = z
                 rz += r.dot(z)
-                if ti.static(self.separate):
+                if ti.static(apart):
                     self.add_to_body(i, r, z)
             rr += self.potential.body_weight[self.model.vertex_body[i]] * r.dot(r)
         if ti.static(two_level):
@@ -135,13 +137,13 @@ class LinearSolver:
         self.cg_beta[None] = 0.0
         self.iterations[None] = 0
         self.active[None] = 1
-        if ti.static(self.separate and not two_level):
+        if ti.static(apart):
             rr = self.end_bodies(target, forcing, 1)
         return rr
 
     @ti.kernel
     def cg_iterations(self, cM: float, cK: float, target: float, forcing: ti.f64, cap: ti.i32, unroll: ti.template(),
-                      two_level: ti.template()) -> TWO_I32:
+                      two_level: ti.template(), apart: ti.template()) -> TWO_I32:
         """Up to `unroll` PCG iterations in one launch (SERIAL_UNROLL where every loop runs on one thread).
 
         Each iteration is three passes (tets: K d; vertices: p, Ap and p.Ap; vertices: d, r, z
@@ -152,9 +154,9 @@ class LinearSolver:
         the iteration count is exact. Where every loop runs on one thread (a small mesh, block
         Jacobi) the iterations are a loop of the launch itself, which stops when PCG does: a
         launch costs more than an iteration there (the ground drops of tests/test_energy.py: 270
-        vertices, 400 iterations a solve). Returns (`active`, the iterations so far).
+        vertices, then 400 iterations a solve). Returns (`active`, the iterations so far).
         """
-        if ti.static(self.separate and not two_level):
+        if ti.static(apart):
             ti.loop_config(serialize=True)
             for _ in range(SERIAL_UNROLL):
                 if not self.active[None]:

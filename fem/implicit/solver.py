@@ -343,7 +343,7 @@ class ImplicitSolver:
                            settings.dt) == self.switches
         self.settings = settings
         self.effects.load(effects)
-        self.effects.set_dt(settings.dt)
+        self.effects.set_dt(settings.dt, settings.dt)
         # the per-body inputs of the kernels, kept here and written together (write_bodies)
         self.pinned_np = np.array([(model.free_np[b.vertices] == 0).any() for b in model.bodies], np.int32)
         self.awake_np = np.ones(len(model.bodies), np.int32)
@@ -385,11 +385,11 @@ class ImplicitSolver:
     def refresh(self, cM, cK, h, dt):
         """Re-derive what depends on the model's methods and materials (after a live edit), the
         integrator's step h and dt."""
-        if (self.model.version, h, dt) != self.model_version:
-            self.model_version = (self.model.version, h, dt)
+        if (self.model.version, h, dt, self.settings.dt) != self.model_version:
+            self.model_version = (self.model.version, h, dt, self.settings.dt)
             self.preconditioning.rebuild()
             self.linear.forget_weight()
-            self.effects.set_dt(dt)
+            self.effects.set_dt(dt, self.settings.dt)
             self.floor_np = self.model.body_floor(GRADIENT_ROUNDOFF[precision()] * epsilon(), h)
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
