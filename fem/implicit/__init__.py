@@ -21,6 +21,7 @@ One module per part, each owning its fields and kernels; `ImplicitSolver` compos
     elasticity.py      the elastic terms tet by tet (corner values) and their gather per vertex
     rotations.py       the tets' rotations R (Bm R^T), warm-started, and the twist stiffness
     newton.py          Newton iterations, the per-body line search and stopping test, the one-solve step
+    bend.py            a stiff body's trials: the turn of Newton's direction taken on its arc
     linear.py          PCG and Jacobi iteration on H d = -grad E
     preconditioner.py  block Jacobi and the coarse level (fem/coarse.py)
     effects.py         gravity, damping, pins and ground contact

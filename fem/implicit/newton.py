@@ -98,33 +98,30 @@ class Newton:
         self.body_speed_floor = ti.field(ti.f64, nb)
         self.from_guess = False           # the step's first iterate is its guess (else v = 0)
         self.islands = None               # the solver adds Islands where contact couples bodies
+        self.bend = None                  # and Bend, the arcs of stiff bodies' trials (bend.py)
 
-    def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False, warm=True):
+    def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False, warm=True, bend=False):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
         scale: how far the first solve extrapolates the last step's change (dt / dt_prev).
         frozen: the rotations stay those of the first iterate (the one-solve step on the ground:
         E is then quadratic but for the ground's terms, and the iterations find the contacts).
-        warm: the first direction starts from the guess (else from 0: a solve again from an answer)."""
+        warm: the first direction starts from the guess (else from 0: a solve again from an answer).
+        bend: a stiff free body's trials take its turn on the arc (fem/implicit/bend.py)."""
         p = self.potential
         # With contact, a pair's friction curves by 2 / eps while it sticks and not at all along its
         # slide: Newton's model sends a sliding pair that should stop far past rest, and one line
-        # search step for all the bodies a pair joins halves for it (two_boxes: 20 iterations a
-        # step, none converged). The first MAJORIZED iterations give friction its curvature across
-        # the slide along it too, f1(s) / s >= f1'(s): a quadratic above friction on any line, so a
-        # full step never carries a pair past rest; then Newton's own model finishes. The 20-box pile
-        # (f64, its first 40 steps, the damping's frame held in the line search) left 13 steps
-        # unconverged at 3 such iterations, 9 at 6, 5 at 10 and 32 at all 20 (the majorizer alone
-        # converges linearly): after 3, Newton's model still sent pairs sliding at a few mm/s to 0.1
-        # to 0.27 m/s, and every line search of the pile's one island halved 3 to 6 times for them.
-        # At 10 a box landing on another at dt 0.01 s (tests/test_contact.py) ended unconverged.
+        # search step for all the bodies a pair joins halves for it (two_boxes: 20 iterations a step,
+        # none converged). The first MAJORIZED iterations give friction its curvature across the slide
+        # along it too, f1(s) / s >= f1'(s): a quadratic above friction on any line, so a full step
+        # never carries a pair past rest; then Newton's own model finishes. The 20-box pile (f64, 40
+        # steps) left 13 steps unconverged at 3 such iterations, 9 at 6, 5 at 10 and 32 at all 20 (the
+        # majorizer alone converges linearly); at 10 a box landing on another at dt 0.01 s did too.
         if self.effects.has_contact:
             self.effects.majorize[None] = 1
         out = Solved(rho=self.evaluate_first(h, tolerance, int(self.from_guess)))   # E and grad E: the first iterate
-        # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the
-        # tolerance at once, and off the ground one iteration is the answer. From the guess, what
-        # is left of E's nonlinearity after one iteration is small, and an inexact direction would
-        # cost a second iteration (BDF2 on epcot: 2.55 iterations a step with FORCING, 2.05
-        # without, 10.0 -> 8.7 ms)
+        # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the tolerance
+        # at once, and off the ground one iteration is the answer. From the guess an inexact direction
+        # would cost a second iteration (BDF2 on epcot: 2.55 iterations a step with FORCING, 2.05 without)
         quadratic = frozen or not self.model.any_corotational
         while out.rho > 1.0 and out.newton_iters < settings.max_newton:
             forcing = 0.0 if quadratic or self.from_guess else FORCING ** 2
@@ -135,19 +132,21 @@ class Newton:
             out.solver_iters += self.direction(cM, cK, target, warm and out.newton_iters == 0, scale, settings,
                                                preconditioner, forcing)
             out.newton_iters, out.capped = out.newton_iters + 1, out.capped + int(self.linear.capped)
+            if bend:
+                self.bend.prepare(p.x0, self.velocity, self.linear.solution, h)
             largest = 1.0
             if self.effects.has_contact:                      # the pairs the search may meet; how far it may go
                 largest = self.effects.contact.prepare_search(p.x, self.linear.solution, h)
-            if self.start_search(tolerance, h, largest) == 0:   # no body has anything left to gain
+            if self.start_search(tolerance, h, largest, bend) == 0:     # no body has anything left to gain
                 out.settled = True
                 break
             for _ in range(MAX_HALVINGS + 1):                 # the trial iterate: each body's a_b along d
                 out.rotation_ms += self.rotate(settings, frozen)
-                if self.evaluate_trial(h) == 0:               # E_b there; every body found its decrease
+                if self.evaluate_trial(h, bend) == 0:         # E_b there; every body found its decrease
                     break
                 out.halvings += 1
             else:                                             # some found no decrease at this precision
-                moved = self.give_up(h)                       # they keep the last iterate
+                moved = self.give_up(h, bend)                 # they keep the last iterate
                 out.rotation_ms += self.rotate(settings, frozen)
                 if moved == 0:
                     break
@@ -309,7 +308,7 @@ class Newton:
             self.linear.solution[i] = d
 
     @ti.kernel
-    def start_search(self, tolerance: ti.f64, h: float, largest: float) -> ti.i32:
+    def start_search(self, tolerance: ti.f64, h: float, largest: float, bend: ti.template()) -> ti.i32:
         """body_slope[b] <- grad_b E . d_b (J, < 0 where d descends). A body whose decrease
         -slope_b is above the round-off of its E_b, or whose gradient has not met the tolerance,
         searches, from a_b = largest (1, or less where contact bounds the step); the others have
@@ -328,7 +327,7 @@ class Newton:
             count += self.searching[b]
         if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
             count = self.islands.search_together(tolerance)
-        self.step_along(h, 1, int(count > 0))                 # the first trial
+        self.step_along(h, 1, int(count > 0), bend)           # the first trial
         return count
 
     # ------------------------------------------------------------ the iterates' kernels: one launch each
@@ -343,7 +342,7 @@ class Newton:
         return rho
 
     @ti.kernel
-    def evaluate_trial(self, h: float) -> ti.i32:
+    def evaluate_trial(self, h: float, bend: ti.template()) -> ti.i32:
         """E_b at the trial iterate, then `armijo`, then the next trial (a body done keeps its
         a_b, and its iterate: the same numbers); returns how many bodies still search."""
         self.potential.iterate_energy(h, 1)
@@ -352,7 +351,7 @@ class Newton:
             left = self.islands.armijo()
         else:
             left = self.armijo()
-        self.step_along(h, 1, int(left > 0))                  # none left: x, v stay the accepted trial
+        self.step_along(h, 1, int(left > 0), bend)            # none left: x, v stay the accepted trial
         return left
 
     @ti.kernel
@@ -385,7 +384,7 @@ class Newton:
         return left
 
     @ti.kernel
-    def give_up(self, h: float) -> ti.i32:
+    def give_up(self, h: float, bend: ti.template()) -> ti.i32:
         """Bodies that found no decrease (at this precision) stay where they are: a_b = 0, and
         the trial iterate with those steps. Returns how many bodies still move."""
         moving = 0
@@ -394,18 +393,18 @@ class Newton:
             if self.searching[b]:
                 self.body_step[b] = 0.0
             moving += int(self.body_step[b] > 0)
-        self.step_along(h, 1, 1)
+        self.step_along(h, 1, 1, bend)
         return moving
 
     @ti.kernel
     def try_step(self, h: float, each: ti.i32):
         """`step_along`: the iterate v <- velocity + a d, x <- x^ + h v."""
-        self.step_along(h, each, 1)
+        self.step_along(h, each, 1, False)
 
     @ti.func
-    def step_along(self, h, each, on):
-        """v <- velocity + a d, x <- x^ + h v: a point on the Newton direction, a = 1 for
-        every body, or (each = 1) each body's own step a_b. on = 0: the pass loops over nothing."""
+    def step_along(self, h, each, on, bend: ti.template()):
+        """v <- velocity + a d, x <- x^ + h v: a point on the Newton direction (bend: on a stiff body's
+        arc), a = 1 for every body, or (each = 1) each body's own a_b. on = 0: the loop runs over nothing."""
         x0, x, v = ti.static(self.potential.x0, self.potential.x, self.potential.v)
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None] * on):
@@ -413,6 +412,8 @@ class Newton:
             if each:
                 a = self.body_step[self.model.vertex_body[i]]
             u = self.velocity[i] + a * self.linear.solution[i]
+            if ti.static(bend):                               # a stiff body's turn on its arc (bend.py)
+                u += self.bend.correction(i, x0, self.velocity, a, h)
             v[i] = u
             x[i] = x0[i] + h * u
 

@@ -17,6 +17,7 @@ import taichi as ti
 from fem.implicit.contact import Contact
 from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
+from fem.implicit.bend import Bend
 from fem.implicit.energy_momentum import PASSES, TIGHTER, EnergyMomentum
 from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho
 from fem.implicit.islands import Islands
@@ -124,6 +125,7 @@ class ImplicitSolver:
                                      switches)
         self.energy_momentum = EnergyMomentum(model, self.potential, self.elasticity, self.rotations, self.effects,
                                               self.safeguards, self.sleep, switches)
+        self.newton.bend = Bend(model, self.energy_momentum.body_stiff, self.effects, self.sleep)
         self.x_end = ti.Vector.field(3, float, model.capacity.vertices)   # m: where the last step ended
         self.rates_from_start = 0                             # what potential.rate_from_start holds
 
@@ -200,11 +202,10 @@ class ImplicitSolver:
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
-        # the first iterate (backward Euler's at x_n, a multistep rule's guess) moves a stiff turning
-        # body along its turn's tangent only: from its rigid turn instead (`arc_first_iterate`)
-        arc = newton and corotational and not contact and model.any_stiff(dt) and \
-            self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h, dt,
-                                              int(target.from_history)) > 0
+        # a stiff turning body starts on its rigid turn (`arc_first_iterate`), and off the ground its trials (bend.py)
+        bend = newton and corotational and not contact and model.any_stiff(dt)
+        arc = bend and self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h,
+                                                         dt, int(target.from_history)) > 0
         if arc:
             self.newton.from_guess = True                               # v != 0: its damping terms count
         if contact:                                                     # contact: the first iterate is x_n
@@ -225,7 +226,8 @@ class ImplicitSolver:
         if momentum_step:
             solved = self.energy_momentum_solve(state_in, cM, cK, h, target.c, tolerance, scale, settings)
         elif newton:
-            solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner)
+            solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner,
+                                       bend=bend and not ground)
         elif (ground or contact) and not model.any_naive:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner, frozen=True)
         else:
@@ -283,7 +285,7 @@ class ImplicitSolver:
             em.target(state_in.x, state_in.v, self.potential.x, h, rho, self.history.acceleration(),
                       rho != 1.0 or self.effects.damped)
             again = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner,
-                                      warm=solved is None)
+                                      warm=solved is None, bend=True)
             done = again.rho <= 1.0 and again.newton_iters == 0
             if solved is not None:
                 again.newton_iters += solved.newton_iters
