@@ -214,12 +214,13 @@ class Model:
     def any_naive(self):
         return any(b.method == "corotational-naive" for b in self.bodies)
 
-    def stiff(self, dt):
+    def stiff(self, dt, shear=False):
         """Per body, whether it may be too stiff for dt to follow: the step's test (Safeguards.stiff_turn,
         (lam + 2 mu) dt^2 r >= M) at the largest radius of gyration it allows, r = 2 L (L the
-        body's size). Returns (bodies,) bool."""
-        return np.array([(b.material.lame[1] + 2.0 * b.material.lame[0]) * dt * dt * 2.0 * b.size >= b.mass
-                         for b in self.bodies], bool)
+        body's size); shear: with 2 mu for lam + 2 mu (a nearly incompressible jelly is stiff, not
+        in shear). Returns (bodies,) bool."""
+        return np.array([(2.0 * b.material.lame[0] + (0.0 if shear else b.material.lame[1])) * dt * dt * 2.0 * b.size
+                         >= b.mass for b in self.bodies], bool)
 
     def any_stiff(self, dt):
         """Some body may be too stiff for dt to follow (`stiff`): a scene with none launches (and

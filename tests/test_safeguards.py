@@ -242,29 +242,32 @@ def test_a_rise_beyond_the_band_is_taken_down_to_its_middle(f64):
 
 
 def test_a_strained_body_whose_solve_failed_is_followed_by_a_backward_euler_step(f64):
-    """A 1 m cube released stretched to 1.3 times its length, undamped, at dt 0.5 s under the
-    trapezoidal rule with its solve capped at one Newton iteration a pass: the capped step raises
+    """A 1 m cube released stretched to twice its length, undamped, at dt 0.5 s under the
+    trapezoidal rule with its solve capped at one Newton iteration a pass: a capped step raises
     its energy beyond what the projection can pay, so it takes a rigid step (trimmed, not
     converged), which keeps its strain; the next step is backward Euler's (`restarted`, named so),
     which damps what the rule could not follow, and the step after it is the rule's again. Every
     step is taken once (the solver's step runs once a step: no retry), and the total energy never
-    rises."""
+    rises. (At 1.3 times its length the capped passes converge since a stiff body's trials take
+    their turn on its arc, fem/implicit/bend.py: no step fails there.)"""
     mesh = cube(2, (1.0, 1.0, 1.0))
     sim = fem.Simulation(Scene("stretched", [Body("box", mesh, Material(1e6, 0.3, 1000.0), "corotational")],
                                effects=Effects(), solver=SolverSettings(dt=0.5, integrator="trapezoidal", max_newton=1)))
     x = sim.positions()
     centre = x.mean(axis=0)
-    sim.set_state(centre + (x - centre) * np.array([1.3, 1.0, 1.0]), np.zeros_like(x))
+    sim.set_state(centre + (x - centre) * np.array([2.0, 1.0, 1.0]), np.zeros_like(x))
     calls, step = [], sim.solver.step
     sim.solver.step = lambda *args: calls.append(1) or step(*args)
     energies, infos = [sim.stats()["total_energy"]], []
-    for _ in range(4):
+    for _ in range(5):
         infos.append(sim.step())
         energies.append(sim.stats()["total_energy"])
-    assert infos[0]["energy_limited"] == 1 and not infos[0]["converged"], infos[0]
-    assert infos[0]["integrator"] == "trapezoidal" and not infos[0]["restarted"]
-    assert infos[1]["restarted"] == 1 and infos[1]["integrator"] == "backward-euler", infos[1]
-    assert all(info["integrator"] == "trapezoidal" and not info["restarted"] for info in infos[2:])
+    failed = [k for k, info in enumerate(infos) if info["energy_limited"]]
+    assert failed and failed[0] <= 2, infos
+    k = failed[0]
+    assert not infos[k]["converged"] and infos[k]["integrator"] == "trapezoidal" and not infos[k]["restarted"]
+    assert infos[k + 1]["restarted"] == 1 and infos[k + 1]["integrator"] == "backward-euler", infos[k + 1]
+    assert all(info["integrator"] == "trapezoidal" and not info["restarted"] for info in infos[k + 2:])
     assert len(calls) == len(infos)
     assert np.all(np.diff(energies) <= 1e-9 * energies[0]), energies
     assert abs(sim.stats()["volume_ratio"][0] - 1.0) < 0.01        # the strain is gone

@@ -10,9 +10,10 @@ pressure is 5.6e3 Pa; the next iteration took that pressure out by turning the b
 the iteration went back and forth (89 of 100 steps unconverged, 74 trimmed, under the
 energy-momentum step; under BDF2 and backward Euler 50 of 50 unconverged).
 
-So off the ground (ImplicitSolver.step: on it the ground, not its spin, turns a body, and the
-ground drops converged less often with the arc) a body too stiff for dt to follow (Model.stiff),
-with no vertex pinned or pressed into the ground, takes the rotational part of d,
+So a body too stiff for dt to follow, in shear too (Model.stiff(dt, shear=True): a nearly
+incompressible jelly deforms through the step, and the ground drops' one converged less often on
+the arc), with no vertex pinned, pressed into the ground or within a step's reach of it (`begin`:
+there the ground, not its spin, turns it), takes the rotational part of d,
 omega_d = I^-1 sum m r x d about its centre c at x_k, on its arc:
 
     x = x_k + h a d + (Rot(w) - I) r - w x r,   r = x_k - c,  w = h a omega_d,
@@ -42,6 +43,27 @@ class Bend:
         self.centre = ti.Vector.field(3, F64, nb)
         self.spin = ti.Vector.field(3, F64, nb)
         self.on = ti.field(ti.i32, nb)
+        self.grounded = ti.field(ti.i32, nb)
+
+    @ti.kernel
+    def begin(self, x_n: ti.template(), v_n: ti.template(), dt: float):
+        """`grounded` <- 1 for a body with a vertex the step may carry into the ground: at x_n within
+        dt (|v_n| + |g| dt) of it (a body resting or landing on it, which the ground, not its spin, turns)."""
+        self.sleep.sums.reduce(self.near, self.store_near, (x_n, v_n, dt))
+
+    @ti.func
+    def near(self, i, b, data: ti.template()):
+        x_n, v_n = ti.static(data[0], data[1])
+        dt = data[2]
+        reach = dt * (v_n[i].norm() + self.effects.gravity[None].norm() * dt)
+        near = 0.0
+        if ti.static(self.effects.has_ground):
+            near = ti.cast(x_n[i][1] - self.effects.ground[None] <= reach, F64)
+        return ti.Vector([near, 0, 0, 0, 0, 0, 0, 0, 0, 0], F64)
+
+    @ti.func
+    def store_near(self, b, total, data: ti.template()):
+        self.grounded[b] = int(total[0] > 0)
 
     @ti.kernel
     def prepare(self, x0: ti.template(), velocity: ti.template(), d: ti.template(), h: float):
@@ -63,7 +85,8 @@ class Bend:
 
     @ti.func
     def store_centre(self, b, total, data: ti.template()):
-        self.on[b] = int(self.stiff[b] == 1 and total[4] == 0 and total[5] == 0 and total[0] > 0)
+        self.on[b] = int(self.stiff[b] == 2 and total[4] == 0 and total[5] == 0 and total[0] > 0 and
+                         self.grounded[b] == 0)
         self.centre[b] = ti.Vector([total[1], total[2], total[3]]) / ti.max(total[0], 1e-300)
 
     @ti.func

@@ -39,7 +39,8 @@ Fields (m tets, bodies of the capacity), made on the first step that needs them 
     start_energy (m,)       Psi_n of the tet, J (float64)
     body_error (bodies,)    e_b, the energy error a body's answer leaves the projection (`energy_error`), J
     body_stiff (bodies,)    1: a corotational body too stiff for dt to follow (Model.stiff), which takes
-                            the algorithmic force; the others keep the trapezoidal rule
+                            the algorithmic force; the others keep the trapezoidal rule (2: in shear
+                            too, and its Newton trials take the arc, bend.py)
 """
 
 import taichi as ti
@@ -108,7 +109,7 @@ class EnergyMomentum:
         from inverting (det F > UPRIGHT: U^-1 is bounded, and the energy is a function of C = F^T F,
         which forgets det F's sign)."""
         F = self.model.edges(x, e) @ self.model.Bm[e]
-        return self.model.method(e) == COROTATIONAL and self.body_stiff[self.model.tet_body[e]] == 1 \
+        return self.model.method(e) == COROTATIONAL and self.body_stiff[self.model.tet_body[e]] >= 1 \
             and F.determinant() > UPRIGHT
 
     @ti.func
@@ -197,7 +198,7 @@ class EnergyMomentum:
         for b in range(self.model.body_count[None]):
             allowed = SHARE * self.safeguards.body_deformation[b] + \
                 self.safeguards.body_quiet[b] * self.potential.body_far[b]
-            if allowed > 0 and self.body_stiff[b] == 1:
+            if allowed > 0 and self.body_stiff[b] >= 1:
                 ratio = ti.max(ratio, ti.abs(self.body_error[b]) / allowed)
         return ratio
 

@@ -10,13 +10,13 @@ Convergence is tested per body: the gradient relative to the size of the step's 
 (IncrementalPotential.gradient_norm), with a round-off floor. Only that test makes a step
 "converged". The iteration also stops, unconverged, when every body's velocity stopped
 changing (`velocity_change`: the last iteration moved no body's velocity by more than
-newton_tolerance of its size), when no body can descend further at this precision, or after
-max_newton iterations; the step's stats then say it did not converge.
+newton_tolerance of its size) and the gradient no longer fell 10 times (a stiff body's velocity
+settles long before its gradient meets the tolerance), when no body can descend further at this
+precision, or after max_newton iterations; the step's stats then say it did not converge.
 
 The step's guess for v is v_n extrapolated with the last step's change (`first_iterate`); the
 trapezoidal rule, which knows a_n, blends in the extrapolated acceleration (Adams-Bashforth), each
-body as much as fitted its own last step (`remember_change`).
-Backward Euler's first iterate is v = 0 (x = x_n), and its first Newton iteration is the
+body as much as fitted its own last step (`remember_change`). Backward Euler's first iterate is v = 0 (x = x_n), and its first Newton iteration is the
 classical one-solve (stiffness-warping) step; BDF2's first iterate is the guess itself, so its
 rotations are those of a position off by O(dt^3), not O(dt^2): that keeps its one-solve step
 second order (docs/method.md). `one_solve` stops after the first iteration, without line
@@ -54,6 +54,7 @@ MAX_HALVINGS = 12        # line search: a >= 2^-12
 OWN_RISE = 10.0
 MAJORIZED = 6            # with contact, the first Newton iterations take friction's majorizer (`solve`)
 FORCING = 0.1            # inexact Newton from v = 0: CG reduces the gradient by this factor (at least)
+FALLING = 0.01           # rho (|grad|^2) falling this much an iteration: Newton goes on past a settled velocity
 FIRST_BLEND = 0.5        # a body's first blend of the Adams-Bashforth guess: v_n + dt a_n
 TWO_F64 = ti.types.vector(2, ti.f64)
 
@@ -154,10 +155,10 @@ class Newton:
             if self.effects.has_contact and out.newton_iters <= MAJORIZED:
                 self.effects.majorize[None] = int(out.newton_iters < MAJORIZED)
             change, rho = self.settle(h, tolerance, settings.newton_tolerance)
-            out.rho = float(rho)
-            # every body's velocity has settled; not under the majorizer, whose short steps are not
-            # Newton's (two_boxes, f64, at 10 majorized iterations: 11 of 60 steps unconverged with it, 6 without)
-            if change <= 1.0 and not (self.effects.has_contact and out.newton_iters <= MAJORIZED):
+            falling, out.rho = rho < FALLING * out.rho, float(rho)
+            # every body's velocity has settled, and the gradient no longer falls as Newton's does; not under
+            # the majorizer, whose short steps are not Newton's (two_boxes f64: 11 of 60 unconverged, 6 without)
+            if change <= 1.0 and not falling and not (self.effects.has_contact and out.newton_iters <= MAJORIZED):
                 out.settled = True
                 break
         return out
@@ -190,20 +191,19 @@ class Newton:
         return ms
 
     def first_iterate(self, x0, x, v, h, from_guess, v_n, scale, accel=None, dt=0.0):
-        """The step's guess for v, guess <- v_n + scale (v_n - v_(n-1)): the velocity extrapolated
-        with the last step's change (scaled by the ratio of the dts; on a turning body it takes a
-        quarter to a third of PCG's first iterations off, docs/method.md, section 7). Then the
-        first Newton iterate: v = the guess (from_guess) or 0, x = x^ + h v; x holds x_n.
-        Given the trapezoidal rule's a_n (`accel`, at the same dt), v_n + dt (3 a_n - a_(n-1)) / 2,
-        the Adams-Bashforth guess, is one order closer where the motion is resolved (a_(n-1) =
-        2 (v_n - v_(n-1)) / dt - a_n, the rule's own update), but the rule keeps the fast modes a
-        step does not resolve ringing in a_n, and there it is further off. So each body's guess
-        goes `blend_b` of the way from the linear guess to it, blend_b fitted to its last step
-        (`remember_change`). Newton iterations a step at dt 0.02 s: torsion 1.57 -> 1.09, box1k
-        1.94 -> 1.24, epcot 1.88 -> 1.62, fertility 1.24 -> 1.26 (the Adams-Bashforth guess
-        alone: 2.19, and a body coming to rest in f32 kept jittering above its sleep threshold).
-        A vertex pressed into the ground starts at v = 0 either way: friction's curvature is that
-        of sticking there, and a guess a little faster than FRICTION_SPEED would start it sliding."""
+        """The step's guess for v, guess <- v_n + scale (v_n - v_(n-1)): the velocity extrapolated with
+        the last step's change (scaled by the ratio of the dts; on a turning body it takes a quarter to
+        a third of PCG's first iterations off, docs/method.md, section 7). Then the first Newton
+        iterate: v = the guess (from_guess) or 0, x = x^ + h v; x holds x_n. Given the trapezoidal
+        rule's a_n (`accel`, at the same dt), v_n + dt (3 a_n - a_(n-1)) / 2, the Adams-Bashforth
+        guess, is one order closer where the motion is resolved (a_(n-1) = 2 (v_n - v_(n-1)) / dt -
+        a_n, the rule's own update), but the rule keeps the fast modes a step does not resolve ringing
+        in a_n, and there it is further off. So each body's guess goes `blend_b` of the way from the
+        linear guess to it, blend_b fitted to its last step (`remember_change`). Newton iterations a
+        step at dt 0.02 s: torsion 1.57 -> 1.09, box1k 1.94 -> 1.24, epcot 1.88 -> 1.62, fertility
+        1.24 -> 1.26 (the Adams-Bashforth guess alone: 2.19, and a body coming to rest in f32 kept
+        jittering above its sleep threshold). A vertex pressed into the ground starts at v = 0 either
+        way: friction's curvature is that of sticking there, and a faster guess would start it sliding."""
         self.from_guess = bool(from_guess)                    # v != 0: its damping terms count
         known = accel is not None
         self.start_iterate(x0, x, v, h, int(from_guess), v_n, scale, accel if known else v_n, int(known), dt)

@@ -202,7 +202,7 @@ class ImplicitSolver:
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
-        # a stiff turning body starts on its rigid turn (`arc_first_iterate`), and off the ground its trials (bend.py)
+        # a stiff turning body starts on its rigid turn (`arc_first_iterate`), and its trials take it too (bend.py)
         bend = newton and corotational and not contact and model.any_stiff(dt)
         arc = bend and self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h,
                                                          dt, int(target.from_history)) > 0
@@ -221,13 +221,13 @@ class ImplicitSolver:
         self.preconditioning.update(p.x, cM, cK, turned, corotational, exact=exact, reuse=not exact,
                                     two_level=self.preconditioner == "two-level")
 
-        # minimise E: Newton with a line search per body, or the one-solve step (on the ground:
-        # Newton with the rotations of the first iterate, to find the contacts)
+        # minimise E: Newton, or the one-solve step (on the ground: Newton with the first iterate's rotations)
         if momentum_step:
             solved = self.energy_momentum_solve(state_in, cM, cK, h, target.c, tolerance, scale, settings)
         elif newton:
-            solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner,
-                                       bend=bend and not ground)
+            if bend and ground:                                         # which bodies the ground may turn
+                self.newton.bend.begin(state_in.x, state_in.v, dt)
+            solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner, bend=bend)
         elif (ground or contact) and not model.any_naive:
             solved = self.newton.solve(cM, cK, h, tolerance, scale, settings, self.preconditioner, frozen=True)
         else:
@@ -396,7 +396,7 @@ class ImplicitSolver:
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
             self.quiet_np = self.model.body_quiet(ROUNDOFF * epsilon(), dt)
-            self.stiff_np = self.model.stiff(dt).astype(np.int32)
+            self.stiff_np = self.model.stiff(dt).astype(np.int32) * (1 + self.model.stiff(dt, shear=True))   # 2: in shear too
             self.write_bodies()
             if not self.model.any_corotational and self.rotations.rotated:
                 self.rotations.unrotate()                     # every body switched to linear
