@@ -222,10 +222,10 @@ class Model:
         return np.array([(2.0 * b.material.lame[0] + (0.0 if shear else b.material.lame[1])) * dt * dt * 2.0 * b.size
                          >= b.mass for b in self.bodies], bool)
 
-    def any_stiff(self, dt):
+    def any_stiff(self, dt, shear=False):
         """Some body may be too stiff for dt to follow (`stiff`): a scene with none launches (and
         compiles) nothing for it."""
-        return bool(self.stiff(dt).any())
+        return bool(self.stiff(dt, shear).any())
 
     def body_floor(self, relative, dt):
         """Per body, the square of `relative` times dt E L^2 (N s): the impulse over a step of

@@ -186,9 +186,8 @@ class ImplicitSolver:
                                                         scale=scale if self.turn_known else 0.0)
         self.turn_known = not ended_here                                # the turn of this step, recorded
         self.measure_rates_from_start(integrator == "backward-euler" and corotational)
-        # the conserving scheme: the undamped trapezoidal rule off the ground. There, and under the
-        # theta rule with mass damping, stiff corotational bodies take the energy-momentum step
-        # (energy_momentum.py; with stiffness damping the step's line search stalls: method.md, section 6)
+        # the conserving scheme: the undamped trapezoidal rule off the ground. There, and under the theta rule
+        # with mass damping, stiff corotational bodies take the energy-momentum step (energy_momentum.py)
         conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
         momentum_step = newton and target.one_step and not (ground or contact or self.switches.stiffness_damping) \
             and corotational and model.any_stiff(dt)
@@ -202,10 +201,11 @@ class ImplicitSolver:
         # the guess for v, and the first iterate: backward Euler's at x_n (v = 0), a multistep one's at the guess
         a_n = self.history.acceleration() if target.one_step else None    # a closer guess
         self.newton.first_iterate(p.x0, p.x, p.v, h, target.from_history, state_in.v, scale, a_n, dt)
-        # a stiff turning body starts on its rigid turn (`arc_first_iterate`), and its trials take it too (bend.py)
-        bend = newton and corotational and not contact and model.any_stiff(dt)
-        arc = bend and self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h,
-                                                         dt, int(target.from_history)) > 0
+        # a stiff turning body starts on its rigid turn (`arc_first_iterate`); in shear too, its trials (bend.py)
+        stiff = newton and corotational and not contact and model.any_stiff(dt)
+        bend = stiff and model.any_stiff(dt, shear=True)
+        arc = stiff and self.safeguards.arc_first_iterate(state_in.x, self.newton.velocity, self.newton.guess, h,
+                                                          dt, int(target.from_history)) > 0
         if arc:
             self.newton.from_guess = True                               # v != 0: its damping terms count
         if contact:                                                     # contact: the first iterate is x_n
@@ -396,7 +396,7 @@ class ImplicitSolver:
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
             self.quiet_np = self.model.body_quiet(ROUNDOFF * epsilon(), dt)
-            self.stiff_np = self.model.stiff(dt).astype(np.int32) * (1 + self.model.stiff(dt, shear=True))   # 2: in shear too
+            self.stiff_np = self.model.stiff(dt).astype(np.int32) * (1 + self.model.stiff(dt, shear=True))  # 2: shear
             self.write_bodies()
             if not self.model.any_corotational and self.rotations.rotated:
                 self.rotations.unrotate()                     # every body switched to linear
