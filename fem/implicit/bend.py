@@ -67,8 +67,8 @@ class Bend:
 
     @ti.kernel
     def prepare(self, x0: ti.template(), velocity: ti.template(), d: ti.template(), h: float):
-        """c and omega_d of every stiff body at x_k = x0 + h velocity (`on`: stiff, massive, and neither
-        pinned nor pressed into the ground at x_k, where the ground, not its spin, turns it)."""
+        """c and omega_d of every body at x_k = x0 + h velocity (`on`: stiff in shear too, massive, not
+        `grounded`, and neither pinned nor pressed into the ground at x_k: there the ground turns it)."""
         self.sleep.sums.reduce(self.moments, self.store_centre, (x0, velocity, h))
         self.sleep.sums.reduce(self.turning, self.store_spin, (x0, velocity, d, h))
 
