@@ -133,7 +133,7 @@ class SolverSettings:
                                         # conserving scheme; 0: backward Euler's); None: by the scene
                                         # (integrators.default_rho): 1, or exp(-dt / 0.5 s) with Rayleigh
                                         # damping, so that damped bodies come to rest
-    max_newton: int = 20                # Newton iterations per step at most
+    max_newton: int = 20                # Newton iterations per step at most (twice that with contact between bodies)
     newton_tolerance: float = 1e-5      # per body: stop (unconverged) when a Newton iteration changes |v|_M by less
     method: str = "pcg"                 # "pcg" | "jacobi": the linear solver inside each Newton iteration
     tolerance: float = 1e-4             # per body: |grad E| / (size of the step's own terms), at dt

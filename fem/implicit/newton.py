@@ -1,26 +1,26 @@
 """The nonlinear solve: Newton iterations on E(v) with a line search per body, or one solve.
 
-Each Newton iteration solves H d = -grad E (fem/implicit/linear.py) to a relative accuracy
-FORCING (inexact Newton), then every body backtracks along its own part of d until its own
-E_b falls enough (Armijo): bodies never interact, so E is a sum of their E_b, and a body hit
-by a violent impulse never sets the step for a quiet one. E_b is summed in float64; a body
-whose decrease is below the round-off of its E_b has nothing left to gain and stops.
+Each Newton iteration solves H d = -grad E (fem/implicit/linear.py) to a relative accuracy FORCING (inexact
+Newton), then every body backtracks along its own part of d until its own E_b falls enough (Armijo): bodies
+never interact, so E is a sum of their E_b, and a body hit by a violent impulse never sets the step for a
+quiet one. E_b is summed in float64; a body whose decrease is below the round-off of its E_b has nothing left
+to gain and stops.
 
 Convergence is tested per body: the gradient relative to the size of the step's own terms
-(IncrementalPotential.gradient_norm), with a round-off floor. Only that test makes a step
-"converged". The iteration also stops, unconverged, when every body's velocity stopped
-changing (`velocity_change`: the last iteration moved no body's velocity by more than
-newton_tolerance of its size) and the gradient no longer fell 10 times (a stiff body's velocity
-settles long before its gradient meets the tolerance), when no body can descend further at this
-precision, or after max_newton iterations; the step's stats then say it did not converge.
+(IncrementalPotential.gradient_norm), with a round-off floor. Only that test makes a step "converged". The
+iteration also stops, unconverged, when every body's velocity stopped changing (`velocity_change`: the last
+iteration moved no body's velocity by more than newton_tolerance of its size) and the gradient no longer fell
+100 times (FALLING) (a stiff body's velocity settles long before its gradient meets the tolerance), when no
+body can descend further at this precision, or after max_newton iterations (CONTACT_NEWTON times that with
+contact); the step's stats then say it did not converge.
 
-The step's guess for v is v_n extrapolated with the last step's change (`first_iterate`); the
-trapezoidal rule, which knows a_n, blends in the extrapolated acceleration (Adams-Bashforth), each
-body as much as fitted its own last step (`remember_change`). Backward Euler's first iterate is v = 0 (x = x_n), and its first Newton iteration is the
-classical one-solve (stiffness-warping) step; BDF2's first iterate is the guess itself, so its
-rotations are those of a position off by O(dt^3), not O(dt^2): that keeps its one-solve step
-second order (docs/method.md). `one_solve` stops after the first iteration, without line
-search. Either starts its first solve from the guess (`start_direction`).
+The step's guess for v is v_n extrapolated with the last step's change (`first_iterate`); the trapezoidal
+rule, which knows a_n, blends in the extrapolated acceleration (Adams-Bashforth), each body as much as fitted
+its own last step (`remember_change`). Backward Euler's first iterate is v = 0 (x = x_n), and its first Newton
+iteration is the classical one-solve (stiffness-warping) step; BDF2's first iterate is the guess itself, so
+its rotations are those of a position off by O(dt^3), not O(dt^2): that keeps its one-solve step second order
+(docs/method.md). `one_solve` stops after the first iteration, without line search. Either starts its first
+solve from the guess (`start_direction`).
 
 Fields (n vertices, bodies of the capacity):
     velocity (n, 3)             v of the accepted iterate, m/s
@@ -53,6 +53,7 @@ MAX_HALVINGS = 12        # line search: a >= 2^-12
 # what the held frame's E fell (the hard cases' E 1e9 cube: up to 2.4; cube86 stretched at nu 0.4999: 1e7)
 OWN_RISE = 10.0
 MAJORIZED = 6            # with contact, the first Newton iterations take friction's majorizer (`solve`)
+CONTACT_NEWTON = 2       # with contact, a step may take this many times max_newton (an impact's barrier and friction)
 FORCING = 0.1            # inexact Newton from v = 0: CG reduces the gradient by this factor (at least)
 FALLING = 0.01           # rho (|grad|^2) falling this much an iteration: Newton goes on past a settled velocity
 FIRST_BLEND = 0.5        # a body's first blend of the Adams-Bashforth guess: v_n + dt a_n
@@ -103,28 +104,25 @@ class Newton:
 
     def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False, warm=True, bend=False):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
-        scale: how far the first solve extrapolates the last step's change (dt / dt_prev).
-        frozen: the rotations stay those of the first iterate (the one-solve step on the ground:
-        E is then quadratic but for the ground's terms, and the iterations find the contacts).
-        warm: the first direction starts from the guess (else from 0: a solve again from an answer).
+        scale: how far the first solve extrapolates the last step's change (dt / dt_prev); frozen: the rotations
+        stay those of the first iterate (the one-solve step on the ground: E is quadratic but for the ground's
+        terms); warm: the first direction starts from the guess (else from 0: a solve again from an answer);
         bend: a stiff free body's trials take its turn on the arc (fem/implicit/bend.py)."""
         p = self.potential
-        # With contact, a pair's friction curves by 2 / eps while it sticks and not at all along its
-        # slide: Newton's model sends a sliding pair that should stop far past rest, and one line
-        # search step for all the bodies a pair joins halves for it (two_boxes: 20 iterations a step,
-        # none converged). The first MAJORIZED iterations give friction its curvature across the slide
-        # along it too, f1(s) / s >= f1'(s): a quadratic above friction on any line, so a full step
-        # never carries a pair past rest; then Newton's own model finishes. The 20-box pile (f64, 40
-        # steps) left 13 steps unconverged at 3 such iterations, 9 at 6, 5 at 10 and 32 at all 20 (the
-        # majorizer alone converges linearly); at 10 a box landing on another at dt 0.01 s did too.
-        if self.effects.has_contact:
+        # With contact, friction curves by 2 / eps while a pair sticks and not at all along its slide: Newton's model
+        # sends a sliding pair far past rest, and the search of every body it joins halves. The first MAJORIZED
+        # directions, and each after a Newton direction that had to halve, take friction's majorizer (f1(s) / s >=
+        # f1'(s) along the slide too): a quadratic above friction, whose full step never carries a pair past rest.
+        # The 20-box pile, 60 steps: 14 -> 2 unconverged in f64, 25 -> 13 in f32 (6 fixed ones, a cap of 20, before)
+        majorized = self.effects.has_contact                  # the next direction takes the majorizer
+        if majorized:
             self.effects.majorize[None] = 1
         out = Solved(rho=self.evaluate_first(h, tolerance, int(self.from_guess)))   # E and grad E: the first iterate
-        # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the tolerance
-        # at once, and off the ground one iteration is the answer. From the guess an inexact direction
-        # would cost a second iteration (BDF2 on epcot: 2.55 iterations a step with FORCING, 2.05 without)
+        # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the tolerance at once (off
+        # the ground one iteration is the answer); from the guess an inexact one costs a second (BDF2, epcot)
         quadratic = frozen or not self.model.any_corotational
-        while out.rho > 1.0 and out.newton_iters < settings.max_newton:
+        cap = settings.max_newton * (CONTACT_NEWTON if self.effects.has_contact else 1)
+        while out.rho > 1.0 and out.newton_iters < cap:
             forcing = 0.0 if quadratic or self.from_guess else FORCING ** 2
             target = max(1.0, forcing * out.rho)
             if self.effects.has_contact and out.newton_iters > 0:   # the blocks of the pairs touching now: the
@@ -141,6 +139,7 @@ class Newton:
             if self.start_search(tolerance, h, largest, bend) == 0:     # no body has anything left to gain
                 out.settled = True
                 break
+            halvings, was = out.halvings, majorized
             for _ in range(MAX_HALVINGS + 1):                 # the trial iterate: each body's a_b along d
                 out.rotation_ms += self.rotate(settings, frozen)
                 if self.evaluate_trial(h, bend) == 0:         # E_b there; every body found its decrease
@@ -152,13 +151,14 @@ class Newton:
                 if moved == 0:
                     break
                 p.energy(p.v0, p.x, p.v, h, 1)
-            if self.effects.has_contact and out.newton_iters <= MAJORIZED:
-                self.effects.majorize[None] = int(out.newton_iters < MAJORIZED)
+            if self.effects.has_contact:
+                majorized = out.newton_iters < MAJORIZED or (out.halvings > halvings and not was)
+                self.effects.majorize[None] = int(majorized)
             change, rho = self.settle(h, tolerance, settings.newton_tolerance)
             falling, out.rho = rho < FALLING * out.rho, float(rho)
-            # every body's velocity has settled, and the gradient no longer falls as Newton's does; not under
-            # the majorizer, whose short steps are not Newton's (two_boxes f64: 11 of 60 unconverged, 6 without)
-            if change <= 1.0 and not falling and not (self.effects.has_contact and out.newton_iters <= MAJORIZED):
+            # every body's velocity has settled and the gradient no longer falls as Newton's does; not after the
+            # majorizer, whose short steps are not Newton's (two_boxes f64: 11 of 60 unconverged, 6 without)
+            if change <= 1.0 and not falling and not was:
                 out.settled = True
                 break
         return out
