@@ -113,7 +113,7 @@ class Newton:
         # sends a sliding pair far past rest, and the search of every body it joins halves. The first MAJORIZED
         # directions, and each after a Newton direction that had to halve, take friction's majorizer (f1(s) / s >=
         # f1'(s) along the slide too): a quadratic above friction, whose full step never carries a pair past rest.
-        # The 20-box pile, 60 steps: 14 -> 2 unconverged in f64, 25 -> 13 in f32 (6 fixed ones, a cap of 20, before)
+        # The 20-box pile, 60 steps: 14 -> 2 unconverged in f64 (6 fixed ones, a cap of 20, before); f32: islands.py
         majorized = self.effects.has_contact                  # the next direction takes the majorizer
         if majorized:
             self.effects.majorize[None] = 1
@@ -348,7 +348,7 @@ class Newton:
         self.potential.iterate_energy(h, 1)
         left = 0
         if ti.static(self.effects.has_contact):               # contact couples the bodies' energies
-            left = self.islands.armijo()
+            left = self.islands.armijo(h)
         else:
             left = self.armijo()
         self.step_along(h, 1, int(left > 0), bend)            # none left: x, v stay the accepted trial
