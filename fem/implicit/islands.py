@@ -101,7 +101,8 @@ class Islands:
         """Vertex i's share of g(a) . d_b at the trial iterate (`vertex_gradient`'s -grad E there)."""
         p = self.newton.potential
         p.vertex_gradient(i, b, (p.x, p.v0, p.v, data, 0))
-        return self.newton.slope(i, b, data)
+        s = -self.newton.effects.filtered(i, p.rhs[i]).dot(self.newton.linear.solution[i])
+        return ti.Vector([ti.cast(s, ti.f64), 0, 0, 0, 0, 0, 0, 0, 0, 0], ti.f64)
 
     @ti.func
     def store_slope(self, b, total, data: ti.template()):
