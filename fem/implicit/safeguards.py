@@ -60,17 +60,13 @@ import taichi as ti
 from fem.elastic import is_finite
 from fem.implicit.potential import ROUNDOFF
 from fem.implicit.fallback import AFTER, BEFORE, Fallback   # noqa: F401 (BEFORE, AFTER: the solver's too)
-from fem.implicit.projection import PENDING, InternalMove
+from fem.implicit.projection import FAILED, PENDING, InternalMove
 from fem.runtime import epsilon
 
 # The conserving projection gives energy back only where that scales a body's deformation
 # velocities up by at most this share: energy the step lost in a mode it cannot follow (a
 # stiff body's unresolved breathing) is not pumped into another
 LIFT = 0.1
-# A rise of more than this share of what the projection can take out is a failed solve, not
-# round-off: scaling a blown-up step's deformation (1.5e10 J made from 0.67 J) back by 1 - lam
-# left 2e3 J where the formula said 0 (the sliver hard case, f32, dt 0.5 s)
-FAILED = 0.5
 FIVE_I32 = ti.types.vector(5, ti.i32)
 
 
@@ -385,13 +381,14 @@ class Safeguards(Fallback, InternalMove):
             if conserve:
                 excess = energy - self.body_total[BEFORE, b]
                 I = self.body_inertia[b]
-                # linear FEM's forces turn a body (they are not rotation invariant): no invariant L there
-                if self.body_pinned[b] == 0 and self.model.body_method[b] != 0 and I.determinant() > 1e-12 * I.trace() ** 3:
+                if self.keeps_spin(b):      # (linear FEM's forces turn a body: no invariant L there)
                     spun = I.inverse() @ self.body_spin_before[b]
                     excess += 0.5 * (spun.dot(I @ spun) - omega.dot(I @ omega))
                     self.body_spin_new[b] = spun
-            elif energy > self.body_lowest[b] + allowance:     # a rise within round-off is no rise
-                excess = energy - self.body_lowest[b] - 0.5 * allowance
+            else:                           # a rise within round-off is no rise
+                gained = energy + self.spin_by_law(b, energy - self.body_lowest[b] - 0.5 * allowance)
+                if gained > self.body_lowest[b] + allowance:
+                    excess = gained - self.body_lowest[b] - 0.5 * allowance
             K = self.body_deformation[b]
             # a scheme that keeps no angular momentum (BDF2, damping, the ground) may take a rise
             # its deformation cannot pay for out of its spin too: v - v_c scaled whole

@@ -19,7 +19,7 @@ from fem.implicit.effects import Effects
 from fem.implicit.elasticity import Elasticity
 from fem.implicit.bend import Bend
 from fem.implicit.energy_momentum import PASSES, TIGHTER, EnergyMomentum
-from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho
+from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho, spin_law
 from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
@@ -152,18 +152,15 @@ class ImplicitSolver:
         so every kernel is compiled once, not once per State.
         """
         start = time.perf_counter()
-        settings, model, p = self.settings, self.model, self.potential
-        restarted = self.restart
-        if restarted:
+        settings, model, p, damped = self.settings, self.model, self.potential, self.effects.damped
+        if (restarted := self.restart):
             self.history.forget()
         corotational, ground, contact = model.any_corotational, self.switches.ground, self.switches.contact
         # every body minimises E; the naive variant has no energy to minimise: one solve
         newton = settings.step == "newton" and not model.any_naive
-        damped = self.effects.damped
         integrator = "backward-euler" if restarted else chosen(settings.integrator, ground or contact)
-        rho = settings.rho_infinity
-        if rho is None:          # by the scene: rest where damped, no ringing on a ground's or contact's penalty
-            rho = default_rho(dt, damped, ground or contact)
+        rho = settings.rho_infinity   # None: by the scene, rest where damped, no ringing on a ground's or contact's penalty
+        rho = default_rho(dt, damped, ground or contact) if rho is None else rho
         target = self.history.target(integrator, dt, model.version, rho, damped)
         h = target.h_per_dt * dt                                        # the integrator's effective step
         cM, cK = p.coefficients(h)
@@ -186,11 +183,14 @@ class ImplicitSolver:
                                                         scale=scale if self.turn_known else 0.0)
         self.turn_known = not ended_here                                # the turn of this step, recorded
         self.measure_rates_from_start(integrator == "backward-euler" and corotational)
-        # the conserving scheme: the undamped trapezoidal rule off the ground. There, and under the theta rule
-        # with mass damping, stiff corotational bodies take the energy-momentum step (energy_momentum.py)
+        # the conserving scheme: the undamped trapezoidal rule off the ground. There, and under the theta rule with mass
+        # damping, stiff corotational bodies take the energy-momentum step (energy_momentum.py); with stiffness damping
+        # their spin is the drag's (Safeguards.spin_by_law)
         conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
-        momentum_step = newton and target.one_step and not (ground or contact or self.switches.stiffness_damping) \
-            and corotational and model.any_stiff(dt)
+        free = newton and target.one_step and not (ground or contact)
+        momentum_step = free and not self.switches.stiffness_damping and corotational and model.any_stiff(dt)
+        self.safeguards.keep_spin_by(spin_law(target, dt, self.effects.alpha) * self.switches.stiffness_damping * free,
+                                     self.stiff_np)
         if momentum_step:
             self.energy_momentum.begin(state_in.x)                     # S_n, Psi_n with R(x_n)
         if newton:
