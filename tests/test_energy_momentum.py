@@ -11,7 +11,8 @@
   that answer leaves (the neighbours of the case above: 10.3 and 11 rad/s, nu 0.45);
 - with mass damping (the theta rule) a stiff spinning body's angular momentum decays as the drag
   says, exp(-alpha t), up to the rule's own dissipation, which falls as dt^2; with stiffness
-  damping too (no energy-momentum step there) it keeps the spin the drag leaves.
+  damping too (no energy-momentum step there) a spinning body, stiff or soft, keeps the spin the
+  drag leaves.
 """
 
 import numpy as np
@@ -169,17 +170,19 @@ def test_a_stiff_spinning_body_under_mass_damping_slows_as_the_drag_says(f64, E)
     assert errors[0] <= 0.035 and errors[1] <= errors[0] / 3.0, errors
 
 
-@pytest.mark.parametrize("precision, alpha", [("f64", 0.0), ("f32", 0.0), ("f64", 0.1)])
-def test_a_stiff_spinning_body_under_stiffness_damping_keeps_the_spin_the_drag_leaves(request, precision, alpha):
+@pytest.mark.parametrize("precision, E, alpha", [("f64", 1e8, 0.0), ("f32", 1e8, 0.0), ("f64", 1e8, 0.1),
+                                                ("f64", 1e5, 0.0), ("f32", 1e5, 0.0)])
+def test_a_spinning_body_under_stiffness_damping_keeps_the_spin_the_drag_leaves(request, precision, E, alpha):
     """Stiffness damping beta K is internal: it turns no body, so a free body's angular momentum
     follows the drag alone, L(t) = L_0 exp(-alpha t). The 0.5 m cube at E 1e8 spinning at 10 rad/s with
     beta 0.01 (the damped theta rule; the energy-momentum step is not taken with stiffness damping)
     kept 0.81 of L after 1 s in f64 and 0.79 in f32 before its spin was the drag's (the rule rang its
-    stiff modes, and the energy that pumped was taken out of the spin). Now 0.967 and 0.986 undragged,
-    and L within 2e-4 of exp(-0.1) with alpha 0.1; the energy, summed in numpy from the states, never
-    rises, and no step takes a rigid step."""
+    stiff modes, and the energy that pumped was taken out of the spin), and the soft one at E 1e5,
+    whose modes dt follows, 0.959 (the rule keeps no L under nonlinear forces). Now at least 0.985
+    undragged, and L within 2e-4 of exp(-0.1) with alpha 0.1; the energy, summed in numpy from the
+    states, never rises, and no step takes a rigid step."""
     request.getfixturevalue(precision)
-    sim, reference = spinning(1e8, 0.3, "cube", (0.0, 10.0, 0.0), effects=Effects(alpha=alpha, beta=0.01))
+    sim, reference = spinning(E, 0.3, "cube", (0.0, 10.0, 0.0), effects=Effects(alpha=alpha, beta=0.01))
     L0, energies = np.linalg.norm(angular_momentum(sim)), [total_energy(sim, reference)]
     for _ in range(50):
         assert not sim.step()["energy_limited"]
@@ -187,7 +190,7 @@ def test_a_stiff_spinning_body_under_stiffness_damping_keeps_the_spin_the_drag_l
     kept = np.linalg.norm(angular_momentum(sim)) / L0
     assert np.diff(energies).max() <= (1e-9 if precision == "f64" else 1e-5) * energies[0], np.diff(energies).max()
     if alpha == 0.0:
-        assert kept >= 0.95, kept
+        assert kept >= 0.98, kept
     else:
         assert abs(kept - np.exp(-alpha)) <= 1e-3, kept
 

@@ -185,12 +185,11 @@ class ImplicitSolver:
         self.measure_rates_from_start(integrator == "backward-euler" and corotational)
         # the conserving scheme: the undamped trapezoidal rule off the ground. There, and under the theta rule with mass
         # damping, stiff corotational bodies take the energy-momentum step (energy_momentum.py); with stiffness damping
-        # their spin is the drag's (Safeguards.spin_by_law)
+        # every free body's spin is the drag's (Safeguards.spin_by_law)
         conserve = int(target == TRAPEZOIDAL and not (ground or contact) and not self.effects.damped)
         free = newton and target.one_step and not (ground or contact)
         momentum_step = free and not self.switches.stiffness_damping and corotational and model.any_stiff(dt)
-        self.safeguards.keep_spin_by(spin_law(target, dt, self.effects.alpha) * self.switches.stiffness_damping * free,
-                                     self.stiff_np)
+        self.safeguards.keep_spin_by(spin_law(target, dt, self.effects.alpha) * self.switches.stiffness_damping * free)
         if momentum_step:
             self.energy_momentum.begin(state_in.x)                     # S_n, Psi_n with R(x_n)
         if newton:
