@@ -108,11 +108,11 @@ def default_rho(dt, damped, penalty):
 
 
 def spin_law(target, dt, alpha):
-    """What the theta rule's drag alpha M leaves of a free body's angular momentum over a step,
+    """What a one-step rule's drag alpha M leaves of a free body's angular momentum over a step,
     L_(n+1) = L_n (1 - (1 - theta) dt alpha) / (1 + theta dt alpha) with theta = h / dt (exp(-alpha dt)
-    to second order at theta = 1/2; internal forces, damping's too, turn no body); 0 for the others."""
+    to second order at theta = 1/2; internal forces, damping's too, turn no body)."""
     theta = target.h_per_dt
-    return (1.0 - (1.0 - theta) * dt * alpha) / (1.0 + theta * dt * alpha) if target.one_step else 0.0
+    return (1.0 - (1.0 - theta) * dt * alpha) / (1.0 + theta * dt * alpha)
 
 
 BACKWARD_EULER = Target("backward-euler", 1.0, 0.0, 1.0)
