@@ -227,12 +227,17 @@ class Model:
         compiles) nothing for it."""
         return bool(self.stiff(dt, shear).any())
 
-    def body_floor(self, relative, dt):
-        """Per body, the square of `relative` times dt E L^2 (N s): the impulse over a step of
-        the body's stiffness times its cross-section, the size of the round-off in its elastic
+    def body_floor(self, relative, dt, volume=0.0):
+        """Per body, the square of `relative` times dt k L^2 (N s): the impulse over a step of
+        the body's stiffness k times its cross-section, the size of the round-off in its elastic
         forces (positions carry round-off relative to their size L whatever the strain).
-        Below it a gradient is round-off. Returns (bodies,) float64."""
-        return np.array([(relative * dt * b.material.E * b.size ** 2) ** 2 for b in self.bodies])
+        Below it a gradient is round-off. k is E, or `volume` times lam + 2 mu where that is
+        more: the volume term's own round-off, which outgrows E's as nu nears 0.5. Returns
+        (bodies,) float64."""
+        def stiffness(material):
+            mu, lam = material.lame
+            return max(material.E, volume * (lam + 2.0 * mu))
+        return np.array([(relative * dt * stiffness(b.material) * b.size ** 2) ** 2 for b in self.bodies])
 
     def body_quiet(self, relative, dt):
         """Per body, the energy round-off of `relative` gives it at rest (J): a strain of

@@ -23,7 +23,7 @@ from fem.implicit.integrators import TRAPEZOIDAL, History, chosen, default_rho, 
 from fem.implicit.islands import Islands
 from fem.implicit.linear import LinearSolver
 from fem.implicit.newton import Newton
-from fem.implicit.potential import GRADIENT_ROUNDOFF, ROUNDOFF, IncrementalPotential, damping_dominates
+from fem.implicit.potential import GRADIENT_ROUNDOFF, ROUNDOFF, VOLUME_ROUNDOFF, IncrementalPotential, damping_dominates
 from fem.implicit.preconditioner import Preconditioner
 from fem.implicit.rotations import Rotations
 from fem.implicit.safeguards import BEFORE, Ending, Safeguards
@@ -391,7 +391,8 @@ class ImplicitSolver:
             self.preconditioning.rebuild()
             self.linear.forget_weight()
             self.effects.set_dt(dt, self.settings.dt)
-            self.floor_np = self.model.body_floor(GRADIENT_ROUNDOFF[precision()] * epsilon(), h)
+            self.floor_np = self.model.body_floor(GRADIENT_ROUNDOFF[precision()] * epsilon(), h,
+                                                  VOLUME_ROUNDOFF[precision()])
             # a velocity change below eps L / h moves no position: what x = x^ + h v can represent
             self.speed_floor_np = self.model.body_speed_floor(epsilon(), h)
             self.quiet_np = self.model.body_quiet(ROUNDOFF * epsilon(), dt)
