@@ -29,9 +29,15 @@ FIRST_STEPS = 2
 RISE = 10.0
 # The Newton step on the hard case takes 98 % of the energy away in its first step (f32); what is left
 # carries the round-off of what was taken (4 to 5 % of it between an AVX-512 and an AVX2 processor), so
-# its energies agree to 5 % or to START_SHARE of the run's start energy.
+# its energies agree to 5 % or to START_SHARE of the run's start energy. From its third step on (LATER),
+# each step stops where float32 no longer resolves the nearly incompressible cube's volume term (residual
+# 0.13 to 0.18 of its scale, at its round-off floor), and whether a step stops there or an iteration
+# later is round-off's choice: the app's build and the tests' kept 11.6 and 7.6 J at step 10, 2.7 and
+# 2.1 J at the end. There the energies agree within a factor CHAOS, and the figure's word, that the
+# energy never rises, is its largest_rise_over_start, compared as every number is.
 DISSIPATED = {"hard_case_energy.total_energy.newton"}
 START_SHARE = 2e-3
+LATER, CHAOS = 3, 2.0
 
 
 def differences(made, committed, where=""):
@@ -50,7 +56,8 @@ def differences(made, committed, where=""):
         if where in DISSIPATED and made:
             floor = START_SHARE * max(abs(made[0]), abs(committed[0]))
             return [(f"{where}[{i}]", a, b) for i, (a, b) in enumerate(zip(made, committed))
-                    if not math.isclose(a, b, rel_tol=RELATIVE, abs_tol=floor)]
+                    if not (math.isclose(a, b, rel_tol=RELATIVE, abs_tol=floor)
+                            or i >= LATER and b / CHAOS <= a <= b * CHAOS)]
         return [d for i, (a, b) in enumerate(zip(made, committed)) for d in differences(a, b, f"{where}[{i}]")]
     numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (made, committed))
     if numbers and where.replace(".largest_rise_over_start", ".total_energy") in UNSTABLE:
@@ -101,6 +108,9 @@ def test_a_dissipated_energy_is_compared_against_the_run_s_start():
     where = "hard_case_energy.total_energy.newton"
     assert differences([520.8, 9.29, 7.93], [520.8, 8.93, 7.52], where) == []   # AVX2 against AVX-512
     assert differences([520.8, 9.29, 9.1], [520.8, 8.93, 7.52], where) == [(f"{where}[2]", 9.1, 7.52)]
+    committed = [520.8, 14.9, 14.9, 14.2, 11.6, 2.7]                 # the app's build; the tests' below
+    assert differences([520.8, 14.9, 14.9, 14.2, 7.6, 2.1], committed, where) == []
+    assert differences([520.8, 14.9, 14.9, 14.2, 5.6, 2.1], committed, where) == [(f"{where}[4]", 5.6, 11.6)]
 
 
 def test_a_run_that_blows_up_is_compared_by_its_first_steps_and_its_rise():
