@@ -79,13 +79,13 @@ def test_section_8_the_coursework_fertility_table(method, cggs, tmp_path):
 
 # Section 3: cube86 over 50 steps at each nu: CG iterations a step, steps not converged, the soft cube's volume ratio
 SECTION_3 = {0.3: (4.4, 1, "1.011"), 0.45: (12.6, 1, "0.997"), 0.499: (38.8, 2, "1.0000")}
-ITERATIONS_SPREAD, UNCONVERGED_SPREAD = 0.1, 2
+ITERATIONS_SPREAD, UNCONVERGED_SPREAD = 0.1, 3
 
 
 @pytest.mark.parametrize("nu", list(SECTION_3))
 def test_section_3_cube86_towards_incompressible(nu):
     iterations, unconverged, ratio = SECTION_3[nu]
-    stated(f"| {nu} | {iterations} | {unconverged} of 50 | {ratio} |", "(within\n10 %), a step or two more or fewer",
+    stated(f"| {nu} | {iterations} | {unconverged} of 50 | {ratio} |", "(within\n10 %), up to three steps more or fewer",
            "the volume ratios within 0.003")
     text = summary("cube86", "--set", f"body.*.material.nu={nu}", "--steps", "50")
     got = re.search(r"([\d.]+) solver iterations/step .*, (\d+) steps? not converged", text)
