@@ -219,7 +219,7 @@ class Model:
         (lam + 2 mu) dt^2 r >= M) at the largest radius of gyration it allows, r = 2 L (L the
         body's size); shear: with 2 mu for lam + 2 mu (a nearly incompressible jelly is stiff, not
         in shear). Returns (bodies,) bool."""
-        return np.array([(2.0 * b.material.lame[0] + (0.0 if shear else b.material.lame[1])) * dt * dt * 2.0 * b.size
+        return np.array([(2.0 * b.material.lame[0] if shear else b.material.longitudinal) * dt * dt * 2.0 * b.size
                          >= b.mass for b in self.bodies], bool)
 
     def any_stiff(self, dt, shear=False):
@@ -234,10 +234,8 @@ class Model:
         Below it a gradient is round-off. k is E, or `volume` times lam + 2 mu where that is
         more: the volume term's own round-off, which outgrows E's as nu nears 0.5. Returns
         (bodies,) float64."""
-        def stiffness(material):
-            mu, lam = material.lame
-            return max(material.E, volume * (lam + 2.0 * mu))
-        return np.array([(relative * dt * stiffness(b.material) * b.size ** 2) ** 2 for b in self.bodies])
+        return np.array([(relative * dt * max(b.material.E, volume * b.material.longitudinal) * b.size ** 2) ** 2
+                         for b in self.bodies])
 
     def body_quiet(self, relative, dt):
         """Per body, the energy round-off of `relative` gives it at rest (J): a strain of

@@ -41,6 +41,13 @@ class Material:
         E, nu = self.E, self.nu
         return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
 
+    @property
+    def longitudinal(self):
+        """lam + 2 mu, the stiffness of a compression that keeps the cross-section (the P-wave
+        modulus), Pa: what a volume change costs, unbounded as nu nears 0.5."""
+        mu, lam = self.lame
+        return lam + 2.0 * mu
+
     def check(self, where):
         if not 0 < self.E <= limits.MAX_YOUNG_MODULUS:
             raise FemError(f"{where}: E must be > 0 and at most {limits.MAX_YOUNG_MODULUS:g} Pa, got {self.E}")

@@ -75,7 +75,7 @@ def damping_dominates(bodies, dt, beta):
     """Some body's stiffness damping over a step outweighs its inertia, dt beta (lam + 2 mu) >= rho L^2
     (L its size; bodies: fem.builder's): the hard cases' 1 m cubes at E 1e9 and nu 0.4999 with beta
     0.1 (897 and 11 at dt 0.02 s), not the built-in scenes (the bunny's 0.019 is their largest)."""
-    return any(dt * beta * (b.material.lame[1] + 2.0 * b.material.lame[0]) >= b.material.density * b.size ** 2
+    return any(dt * beta * b.material.longitudinal >= b.material.density * b.size ** 2
                for b in bodies)
 
 
