@@ -139,6 +139,7 @@ class Contact:
         self.reach[None] = max(float(edges.mean()), 4.0 * contact.distance)
         self.distance[None], self.friction[None] = contact.distance, contact.friction
         self.sticking.stick_count[None] = 0
+        self.broad.forget()
 
     def set_dt(self, dt):
         """The barrier's stiffness k = PAIR_STIFFNESS / dt^2 follows the scene's dt, as the ground's."""
@@ -267,7 +268,7 @@ class Contact:
     @ti.kernel
     def find(self, x: ti.template()):
         """The pairs closer than d_hat at x (the step's start: its energy BEFORE)."""
-        self.broad.find_pairs(x, self.distance[None])
+        self.broad.near_pairs(x, self.distance[None])
 
     @ti.kernel
     def start(self, x: ti.template(), v: ti.template(), h: float, body_E: ti.template()):
@@ -309,7 +310,7 @@ class Contact:
             i = self.surface[s]
             ti.atomic_max(self.largest_move[None], (x[i] - x_n[i]).norm())
         D = ti.min(self.largest_move[None], self.reach[None])
-        self.broad.find_pairs(x_n, self.distance[None] + 2.0 * D)
+        self.broad.near_pairs(x_n, self.distance[None] + 2.0 * D)
         self.step_limit[None] = float(self.largest_move[None] <= self.reach[None])
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
@@ -338,7 +339,7 @@ class Contact:
         D, limit = self.largest_move[None], 1.0
         if D > self.reach[None]:
             limit = self.reach[None] / D
-        self.broad.find_pairs(x, self.distance[None] + 2.0 * limit * D)
+        self.broad.near_pairs(x, self.distance[None] + 2.0 * limit * D)
         self.broad.find_islands()
         self.step_limit[None] = limit
         ti.loop_config(serialize=True)
@@ -399,7 +400,7 @@ class Contact:
     @ti.kernel
     def find_within(self, x: ti.template(), radius: float):
         """pairs <- every pair closer than radius at x."""
-        self.broad.find_pairs(x, radius)
+        self.broad.near_pairs(x, radius)
 
     @ti.func
     def share_energy(self, x: ti.template()):
