@@ -1,10 +1,10 @@
 """The nonlinear solve: Newton iterations on E(v) with a line search per body, or one solve.
 
 Each Newton iteration solves H d = -grad E (fem/implicit/linear.py) to a relative accuracy FORCING (inexact
-Newton), then every body backtracks along its own part of d until its own E_b falls enough (Armijo): bodies
-never interact, so E is a sum of their E_b, and a body hit by a violent impulse never sets the step for a
-quiet one. E_b is summed in float64; a body whose decrease is below the round-off of its E_b has nothing left
-to gain and stops.
+Newton; CONTACT_FORCING from the guess where contact makes no direction the answer), then every body backtracks
+along its own part of d until its own E_b falls enough (Armijo): bodies never interact, so E is a sum of their
+E_b, and a body hit by a violent impulse never sets the step for a quiet one. E_b is summed in float64; a body
+whose decrease is below the round-off of its E_b has nothing left to gain and stops.
 
 Convergence is tested per body: the gradient relative to the size of the step's own terms
 (IncrementalPotential.gradient_norm), with a round-off floor. Only that test makes a step "converged". The
@@ -55,10 +55,7 @@ OWN_RISE = 10.0
 MAJORIZED = 6            # with contact, the first Newton iterations take friction's majorizer (`solve`)
 CONTACT_NEWTON = 2       # with contact, a step may take this many times max_newton (an impact's barrier and friction)
 FORCING = 0.1            # inexact Newton from v = 0: CG reduces the gradient by this factor (at least)
-# with contact, from the guess: CG reduces rho (|grad|^2) by this factor (at least) in every Newton iteration. The 20-box pile's
-# 60 steps, f32 and f64 (each its own run): from the guess exact (0) 768 CG iterations a step, 2 and 2 steps
-# unconverged; 1e-2: 286, 1 and 4; 3e-3: 3 and 1; 1e-3: 385, 1 and 2 (chaos decides between 1 and 4)
-CONTACT_FORCING = 1e-3
+CONTACT_FORCING = 1e-3   # with contact, from the guess: CG reduces rho (|grad|^2) this much (docs/method.md, section 6)
 FALLING = 0.01           # rho (|grad|^2) falling this much an iteration: Newton goes on past a settled velocity
 FIRST_BLEND = 0.5        # a body's first blend of the Adams-Bashforth guess: v_n + dt a_n
 TWO_F64 = ti.types.vector(2, ti.f64)
@@ -103,8 +100,7 @@ class Newton:
         self.body_momentum = ti.field(ti.f64, nb)
         self.body_speed_floor = ti.field(ti.f64, nb)
         self.from_guess = False           # the step's first iterate is its guess (else v = 0)
-        self.islands = None               # the solver adds Islands where contact couples bodies
-        self.bend = None                  # and Bend, the arcs of stiff bodies' trials (bend.py)
+        self.islands, self.bend = None, None    # the solver adds Islands where contact couples bodies, and Bend
 
     def solve(self, cM, cK, h, tolerance, scale, settings, preconditioner, frozen=False, warm=True, bend=False):
         """Newton iterations from the first iterate until every body has converged; returns Solved.
@@ -125,11 +121,7 @@ class Newton:
         # E is quadratic on linear bodies (or frozen rotations): the direction is solved to the tolerance at once (off
         # the ground one iteration is the answer); from the guess an inexact one costs a second (BDF2, epcot)
         quadratic = frozen or not self.model.any_corotational
-        forcing = 0.0 if quadratic or self.from_guess else FORCING ** 2
-        if self.effects.has_contact and self.from_guess and not quadratic:
-            # no direction is the answer (the barrier's and friction's curvature change along it): inexact, the pile's
-            # first had run to PCG's cap of 200 on every step
-            forcing = CONTACT_FORCING
+        forcing = 0.0 if quadratic else (CONTACT_FORCING * self.effects.has_contact if self.from_guess else FORCING ** 2)
         cap = settings.max_newton * (CONTACT_NEWTON if self.effects.has_contact else 1)
         while out.rho > 1.0 and out.newton_iters < cap:
             target = max(1.0, forcing * out.rho)
