@@ -210,7 +210,8 @@ class BroadPhase:
         """pairs <- as find_pairs(x, radius), the same pairs, taken from the candidates of an earlier search
         with a wider radius R while no surface vertex moved more than (R - radius) / 2 since (no pair came
         closer by more than R - radius); else, or where R is more than twice what a new search would take, a
-        search 2 MARGIN d_hat wider than radius makes new candidates."""
+        search 2 MARGIN d_hat wider than radius makes new candidates. (One that overflowed is filtered too, and
+        not reused: its pairs are all there is room for.)"""
         surface = ti.static(self.contact.surface)
         self.moved[None] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
@@ -228,15 +229,12 @@ class BroadPhase:
         for s in range(self.contact.surface_count[None] * stale):
             self.searched_x[surface[s]] = x[surface[s]]
         ti.loop_config(serialize=True)
-        for _ in range(stale):
-            self.candidate_count[None] = self.contact.pair_count[None]
-            self.searched_radius[None] = wider
-            if self.contact.overflow[None]:                   # some left out: no candidates to use
-                self.searched_radius[None] = -1.0
-        overflow = self.contact.overflow[None] * stale
-        self.find_pairs(x, radius, overflow)
-        ti.loop_config(serialize=True)
-        for _ in range(1 - overflow):
+        for _ in range(1):
+            if stale:
+                self.candidate_count[None] = self.contact.pair_count[None]
+                self.searched_radius[None] = wider
+                if self.contact.overflow[None]:               # some left out (the run warns): none to reuse
+                    self.searched_radius[None] = -1.0
             self.contact.pair_count[None] = 0
             for q in range(self.candidate_count[None]):
                 pair = self.candidates[q]
