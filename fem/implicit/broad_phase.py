@@ -2,7 +2,8 @@
 be close (fem/implicit/contact.py).
 
 A uniform grid hashed into `table_size` buckets (Teschner et al. 2003), rebuilt at every
-search in three parallel passes and one prefix sum. A cell is at least as wide as every
+new search in three parallel passes and one prefix sum (`near_pairs` filters the candidates of
+a wider search instead while they still hold: a Verlet list). A cell is at least as wide as every
 triangle's box grown by the search radius, so each triangle lies in at most 8 cells and a
 vertex only looks in its own, an edge in the (at most 8) its box touches: O(n) work for n
 surface vertices, edges and triangles.
