@@ -49,8 +49,11 @@ Fields (n vertices, t triangles of the capacity, P pairs):
                            sides (j, j + 1) as edge ids; edge_owner (e,) 3 k + j of its first side
     pairs (P, 2)           candidate pairs of the current search: (vertex, triangle), or
                            (-e - 1, f) for edges e < f (`corners`)
-    pair_weights (P, 4)    c at the last evaluation (`points_gap`)
-    pair_matrix (P, 3x3)   h^2 k m_p b"(d) n n^T while touching, else 0 (kg/s)
+    close_ids (P, 4)       the four vertices of each pair closer than d_hat at the last evaluation
+    close_count ()         how many: the Hessian products loop over these alone (the pile's first
+                           CG of a step, with the line search's 4,500 candidates, over 130 or so)
+    pair_weights (P, 4)    their c (`points_gap`)
+    pair_matrix (P, 3x3)   their h^2 k m_p b"(d) n n^T (kg/s)
     sticking               the step's friction pairs (PairFriction, fem/implicit/friction.py)
     force (n, 3)           -grad of the contact and friction terms at the last evaluation, N s
     product (n, 3)         (their Hessian) u of the last product pass, N s
@@ -106,6 +109,8 @@ class Contact:
         self.overflow = ti.field(ti.i32, ())
         self.broad = BroadPhase(model, self, switches)
         self.island = self.broad.island
+        self.close_ids = ti.Vector.field(4, ti.i32, self.pair_capacity)
+        self.close_count = ti.field(ti.i32, ())
         self.pair_weights = ti.Vector.field(4, float, self.pair_capacity)
         self.pair_matrix = ti.Matrix.field(3, 3, float, self.pair_capacity)
         self.sticking = PairFriction(self, self.pair_capacity)
@@ -218,12 +223,12 @@ class Contact:
         for b in range(self.model.body_count[None]):
             self.body_noise[b] = 0.0
         d_hat = self.distance[None]
+        self.close_count[None] = 0
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
             ids, edge = self.vertices(q)
             d, n, c = self.gap(x, ids, edge)
             km = self.stiffness[None] * self.pair_mass(ids, edge)
-            A = ti.Matrix.zero(float, 3, 3)
             if d < d_hat:
                 phi, push, curve = barrier(d, d_hat)
                 mol, slope, grad0, grad1 = self.mollifier(x, ids, edge)
@@ -237,6 +242,8 @@ class Contact:
                     ti.atomic_add(self.force[ids[2]], f1)
                     ti.atomic_sub(self.force[ids[3]], f1)
                 A = h * h * km * mol * curve * n.outer_product(n)
+                k = ti.atomic_add(self.close_count[None], 1)
+                self.close_ids[k], self.pair_weights[k], self.pair_matrix[k] = ids, c, A
                 size = 0.0                                     # sum_a |c_a| |x_a|: d's round-off / eps
                 for a in ti.static(range(4)):
                     self.block[ids[a]] += c[a] * c[a] * A
@@ -244,7 +251,6 @@ class Contact:
                 noise = ti.cast(ti.static(NOISE * epsilon()) * h * km * mol * curve * size, ti.f64) ** 2
                 for a in ti.static(range(4)):
                     self.body_noise[self.model.vertex_body[ids[a]]] += noise * ti.cast(c[a] * c[a], ti.f64)
-            self.pair_weights[q], self.pair_matrix[q] = c, A
         self.sticking.evaluate(v, h, body_E, self.force, self.block)
 
     @ti.func
@@ -255,12 +261,12 @@ class Contact:
         for i in range(self.model.vertex_count[None] * on):
             self.product[i] = ti.Vector.zero(float, 3)
         ti.loop_config(serialize=self.serial_vertices)
-        for q in range(self.pair_count[None] * on):
-            ids, c = self.vertices(q)[0], self.pair_weights[q]
+        for k in range(self.close_count[None] * on):
+            ids, c = self.close_ids[k], self.pair_weights[k]
             s = ti.Vector.zero(float, 3)
             for a in ti.static(range(4)):
                 s += c[a] * (z[ids[a]] + beta * p[ids[a]])
-            self.scatter(self.product, ids, c, self.pair_matrix[q] @ s)
+            self.scatter(self.product, ids, c, self.pair_matrix[k] @ s)
         self.sticking.product(z, p, beta, on, self.product)
 
     # ------------------------------------------------------------ the step's passes
