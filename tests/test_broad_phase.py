@@ -41,25 +41,31 @@ def point_triangle(p, a, b, c):
     return min(point_segment(p, a, b), point_segment(p, b, c), point_segment(p, c, a))
 
 
-def every_pair(x, triangles, edges, radius):
-    """{(vertex, triangle)} and {(-e - 1, f), e < f} closer than radius, sharing no vertex."""
+def every_pair(x, triangles, edges, radius, motion=None):
+    """{(vertex, triangle)} and {(-e - 1, f), e < f} closer than radius + m_a + m_b, sharing no vertex (m the
+    most any of a side's vertices moves, `motion` per vertex; none by default)."""
     near, surface = set(), np.unique(triangles)
+    m = np.zeros(len(x)) if motion is None else motion
+    largest = radius + 2 * m.max()
     for k, t in enumerate(triangles):             # (a vertex outside a triangle's box grown by radius is further)
-        box = (x[t].min(0) - radius <= x[surface]).all(1) & (x[surface] <= x[t].max(0) + radius).all(1)
-        near |= {(i, k) for i in surface[box] if i not in t and point_triangle(x[i], *x[t]) < radius}
+        box = (x[t].min(0) - largest <= x[surface]).all(1) & (x[surface] <= x[t].max(0) + largest).all(1)
+        near |= {(i, k) for i in surface[box]
+                 if i not in t and point_triangle(x[i], *x[t]) < radius + m[i] + m[t].max()}
     for e, (a0, a1) in enumerate(edges):
-        low, high = np.minimum(x[a0], x[a1]) - radius, np.maximum(x[a0], x[a1]) + radius
+        low, high = np.minimum(x[a0], x[a1]) - largest, np.maximum(x[a0], x[a1]) + largest
         for f in np.flatnonzero((np.maximum(x[edges[:, 0]], x[edges[:, 1]]) >= low).all(1) &
                                 (np.minimum(x[edges[:, 0]], x[edges[:, 1]]) <= high).all(1)):
             b0, b1 = edges[f]
-            if f > e and len({a0, a1, b0, b1}) == 4 and segments(x[a0], x[a1], x[b0], x[b1]) < radius:
+            reach = radius + m[[a0, a1]].max() + m[[b0, b1]].max()
+            if f > e and len({a0, a1, b0, b1}) == 4 and segments(x[a0], x[a1], x[b0], x[b1]) < reach:
                 near.add((-e - 1, int(f)))
     return near
 
 
-def same(pairs, x, triangles, edges, radius):
-    """pairs are every pair closer than radius, up to those within 1e-9 m of it (round-off)."""
-    return every_pair(x, triangles, edges, radius - 1e-9) <= pairs <= every_pair(x, triangles, edges, radius + 1e-9)
+def same(pairs, x, triangles, edges, radius, motion=None):
+    """pairs are every pair closer than radius (+ m_a + m_b), up to those within 1e-9 m of it (round-off)."""
+    return (every_pair(x, triangles, edges, radius - 1e-9, motion) <= pairs
+            <= every_pair(x, triangles, edges, radius + 1e-9, motion))
 
 
 def found(contact):
@@ -83,10 +89,12 @@ def boxes():
     fem.init("cpu", "f32")
 
 
-def search(sim, x, radius):
+def search(sim, x, radius, motion=None):
     contact = sim.solver.effects.contact
     sim.model.write(sim.state.x, x)
-    contact.find_within(sim.state.x, radius)
+    if motion is not None:
+        sim.model.write(contact.broad.motion, motion)
+    contact.find_within(sim.state.x, radius, 0.0 if motion is None else 1.0)
     assert contact.overflow[None] == 0
     return found(contact)
 
@@ -117,3 +125,25 @@ def test_a_search_reuses_the_wider_one_while_it_holds_and_searches_again_after(b
     pairs = search(sim, far, 0.015)
     assert float(broad.searched_radius[None]) != wider                        # searched again
     assert same(pairs, far, triangles, edges, 0.015)
+
+
+def test_each_side_reaches_as_far_as_it_moves(boxes):
+    """With motion, a pair is found where it is closer than the radius plus the most each side may move (the line
+    search's bound on how far it can close): the upper box moving 3 cm finds its far pairs, the still box none."""
+    sim, x, triangles, edges = boxes
+    broad = sim.solver.effects.contact.broad
+    motion = np.zeros(len(x))
+    upper = np.arange(len(x))[sim.model.bodies[1].vertices]
+    motion[upper] = 0.03 * np.random.default_rng(3).uniform(0.5, 1.0, len(upper))
+    broad.forget()
+    still = search(sim, x, 0.005)
+    pairs = search(sim, x, 0.005, motion)
+    assert len(pairs) > 2 * len(still)
+    assert same(pairs, x, triangles, edges, 0.005, motion)
+    rng = np.random.default_rng(4)
+    for _ in range(2):                        # reused while each vertex moved less than its room, then not
+        moved = x + 0.2 * MARGIN * 0.01 * rng.uniform(-1, 1, x.shape) / np.sqrt(3)
+        pairs = search(sim, moved, 0.005, 0.5 * motion)
+        assert same(pairs, moved, triangles, edges, 0.005, 0.5 * motion)
+    pairs = search(sim, x, 0.005, 2.0 * motion)
+    assert same(pairs, x, triangles, edges, 0.005, 2.0 * motion)

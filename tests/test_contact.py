@@ -153,7 +153,7 @@ def test_the_contact_gradient_is_the_energy_s_and_its_hessian_is_symmetric_and_p
     # IPC's mollifier fades their pairs (sin^2 = 4e-4 < MOLLIFIER)
     x[m.bodies[1].vertices] = (upper - centre) @ turn.T + centre + np.array([0.163, -0.004, 0.021])
     sim.model.write(sim.solver.potential.x, x)
-    contact.find_within(sim.solver.potential.x, 0.2)
+    contact.find_within(sim.solver.potential.x, 0.2, 0.0)
     assert contact.pair_count[None] > 0
     E, force = contact_terms(sim, x)
     assert E > 0

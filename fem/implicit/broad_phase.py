@@ -106,6 +106,8 @@ class BroadPhase:
         self.candidates = ti.Vector.field(2, ti.i32, contact.pair_capacity)
         self.candidate_count = ti.field(ti.i32, ())
         self.searched_x = ti.Vector.field(3, float, model.capacity.vertices)
+        self.searched_motion = ti.field(float, model.capacity.vertices)
+        self.motion = ti.field(float, model.capacity.vertices)
         self.searched_radius = ti.field(float, ())
         self.moved = ti.field(float, ())
 
@@ -124,11 +126,26 @@ class BroadPhase:
         return h & ti.static(self.table_size - 1)
 
     @ti.func
-    def triangle_cells(self, x: ti.template(), k, radius):
-        """The lowest and highest grid cells of triangle k's box grown by radius."""
+    def motion_of(self, i, scale):
+        """How far surface vertex i may move in the search's step: scale * motion[i] (m)."""
+        return scale * self.motion[i]
+
+    @ti.func
+    def triangle_motion(self, k, scale):
         t = self.contact.triangles[k]
-        lo = ti.min(x[t[0]], x[t[1]], x[t[2]]) - radius
-        hi = ti.max(x[t[0]], x[t[1]], x[t[2]]) + radius
+        return ti.max(self.motion_of(t[0], scale), self.motion_of(t[1], scale), self.motion_of(t[2], scale))
+
+    @ti.func
+    def edge_motion(self, e, scale):
+        ends = self.contact.edges[e]
+        return ti.max(self.motion_of(ends[0], scale), self.motion_of(ends[1], scale))
+
+    @ti.func
+    def triangle_cells(self, x: ti.template(), k, grow):
+        """The lowest and highest grid cells of triangle k's box grown by `grow`."""
+        t = self.contact.triangles[k]
+        lo = ti.min(x[t[0]], x[t[1]], x[t[2]]) - grow
+        hi = ti.max(x[t[0]], x[t[1]], x[t[2]]) + grow
         return self.cell_of(lo), self.cell_of(hi)
 
     @ti.func
@@ -144,22 +161,26 @@ class BroadPhase:
         return first
 
     @ti.func
-    def find_pairs(self, x: ti.template(), radius, on=1):
-        """pairs <- every (surface vertex, triangle not containing it) and every (surface edge,
-        edge sharing no vertex with it) closer than radius at x. on = 0: the loops run over nothing."""
+    def find_pairs(self, x: ti.template(), radius, scale=0.0, on=1):
+        """pairs <- every (surface vertex, triangle not containing it) and every (surface edge, edge
+        sharing no vertex with it) closer than radius + m_a + m_b at x, m the most either side's
+        points move (`motion_of`: scale * motion; none where scale = 0). Each side's box grows by
+        radius / 2 + its m, and a pair is found in the first grid cell that both grown boxes share.
+        on = 0: the loops run over nothing."""
         nt = self.contact.triangle_count[None]
+        half = 0.5 * radius
         self.cell[None] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt * on):
             t = self.contact.triangles[k]
             size = ti.max(x[t[0]], x[t[1]], x[t[2]]) - ti.min(x[t[0]], x[t[1]], x[t[2]])
-            ti.atomic_max(self.cell[None], size.max() + 2.0 * radius)
+            ti.atomic_max(self.cell[None], size.max() + 2.0 * (half + self.triangle_motion(k, scale)))
         ti.loop_config(serialize=self.serial_vertices)
         for b in range(self.table_size * on):
             self.cell_count[b] = 0
         ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt * on):
-            lo, hi = self.triangle_cells(x, k, radius)
+            lo, hi = self.triangle_cells(x, k, half + self.triangle_motion(k, scale))
             self.lowest[k], self.highest[k] = lo, hi
             for i, j, l in ti.ndrange(2, 2, 2):
                 c = lo + ti.Vector([i, j, l])
@@ -187,48 +208,44 @@ class BroadPhase:
             self.contact.pair_count[None], self.contact.overflow[None] = 0, 0
         ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.contact.surface_count[None] * on):
-            i = self.contact.surface[s]
-            c = self.cell_of(x[i])
-            b = self.bucket(c)
-            for slot in range(self.cell_start[b], self.cell_start[b + 1]):
-                k = self.cell_triangles[slot]
-                t = self.contact.triangles[k]
-                lo, hi = self.lowest[k], self.highest[k]
-                near = (x[i] >= ti.min(x[t[0]], x[t[1]], x[t[2]]) - radius).all() and \
-                    (x[i] <= ti.max(x[t[0]], x[t[1]], x[t[2]]) + radius).all()   # in its grown box
-                if (t != i).all() and (c >= lo).all() and (c <= hi).all() and near:
-                    if self.pair_distance(x, i, k) < radius:
-                        self.add_pair(i, k)
+            self.vertex_pairs(x, self.contact.surface[s], half, scale)
         ti.loop_config(serialize=self.serial_vertices)
         for e in range(self.contact.edge_count[None] * on):       # edge-edge: the pair (e, f), e < f, once
-            self.edge_pairs(x, e, radius)
+            self.edge_pairs(x, e, half, scale)
         ti.loop_config(serialize=True)
         for _ in range(on):
             self.contact.pair_count[None] = ti.min(self.contact.pair_count[None], ti.static(self.contact.pair_capacity))
 
     @ti.func
-    def near_pairs(self, x: ti.template(), radius):
-        """pairs <- as find_pairs(x, radius), the same pairs, taken from the candidates of an earlier search
-        with a wider radius R while no surface vertex moved more than (R - radius) / 2 since (no pair came
-        closer by more than R - radius); else, or where R is more than twice what a new search would take, a
-        search 2 MARGIN d_hat wider than radius makes new candidates. (One that overflowed is filtered too, and
-        not reused: its pairs are all there is room for.)"""
+    def near_pairs(self, x: ti.template(), radius, scale=0.0):
+        """pairs <- as find_pairs(x, radius, scale), the same pairs, taken from the candidates of an earlier
+        search while they hold: it was made wider (radius R, motions M_i) and no surface vertex i has moved
+        further since than R / 2 + M_i - radius / 2 - m_i (no pair came closer than it may); else, or where
+        the earlier search was more than twice as wide as a new one would be, a search 2 MARGIN d_hat wider
+        than radius makes new candidates. (One that overflowed is filtered too, and not reused: its pairs are
+        all there is room for.)"""
         surface = ti.static(self.contact.surface)
-        self.moved[None] = 0.0
+        self.moved[None] = 0.0             # the most a vertex came past what the candidates allow (> 0: stale)
+        wide, asked = 0.0, 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.contact.surface_count[None]):
             i = surface[s]
-            ti.atomic_max(self.moved[None], (x[i] - self.searched_x[i]).norm())
+            m = self.motion_of(i, scale)
+            room = 0.5 * (self.searched_radius[None] - radius) + self.searched_motion[i] - m
+            ti.atomic_max(self.moved[None], (x[i] - self.searched_x[i]).norm() - room)
+            ti.atomic_max(wide, self.searched_motion[i])
+            ti.atomic_max(asked, m)
         wider = radius + ti.static(2.0 * MARGIN) * self.contact.distance[None]
-        stale = int(radius + 2.0 * self.moved[None] > self.searched_radius[None] or  # a pair may have come closer
-                    self.searched_radius[None] > 2.0 * wider)                       # too many to filter
-        self.find_pairs(x, wider, stale)
+        stale = int(self.moved[None] > 0.0 or self.searched_radius[None] < 0.0 or        # a pair may have come closer
+                    self.searched_radius[None] + 2.0 * wide > 2.0 * (wider + 2.0 * asked))   # too many to filter
+        self.find_pairs(x, wider, scale, stale)
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.contact.pair_count[None] * stale):
             self.candidates[q] = self.contact.pairs[q]
         ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.contact.surface_count[None] * stale):
-            self.searched_x[surface[s]] = x[surface[s]]
+            i = surface[s]
+            self.searched_x[i], self.searched_motion[i] = x[i], self.motion_of(i, scale)
         ti.loop_config(serialize=True)
         for _ in range(1):
             if stale:
@@ -239,9 +256,19 @@ class BroadPhase:
             self.contact.pair_count[None] = 0
             for q in range(self.candidate_count[None]):
                 pair = self.candidates[q]
-                if self.pair_distance(x, pair[0], pair[1]) < radius:
+                if self.pair_distance(x, pair[0], pair[1]) < radius + self.pair_motion(pair, scale):
                     self.contact.pairs[self.contact.pair_count[None]] = pair
                     self.contact.pair_count[None] += 1
+
+    @ti.func
+    def pair_motion(self, pair, scale):
+        """m_a + m_b of a candidate pair (`pair_distance`'s kinds)."""
+        m = 0.0
+        if pair[0] >= 0:
+            m = self.motion_of(pair[0], scale) + self.triangle_motion(pair[1], scale)
+        else:
+            m = self.edge_motion(-pair[0] - 1, scale) + self.edge_motion(pair[1], scale)
+        return m
 
     @ti.func
     def pair_distance(self, x: ti.template(), first, second):
@@ -268,15 +295,36 @@ class BroadPhase:
             self.contact.overflow[None] = 1
 
     @ti.func
-    def edge_pairs(self, x: ti.template(), e, radius):
-        """The edge-edge pairs (-e - 1, f) of surface edge e with the edges f > e closer than radius
-        that share no vertex with it. The point of e closest to f lies in e's box and in the grown
-        box of every triangle of f, so in a cell of both: the first such cell (max of the two lowest)
-        finds the pair, and only the triangle that owns f (`edge_owner`) reports it."""
+    def vertex_pairs(self, x: ti.template(), i, half, scale):
+        """The vertex-triangle pairs (i, k) of surface vertex i closer than 2 half + m_i + m_k, each found in
+        the first cell of both grown boxes (a cell is wider than either: at most 2 a side)."""
+        grow_i = half + self.motion_of(i, scale)
+        lo_i, hi_i = self.cell_of(x[i] - grow_i), self.cell_of(x[i] + grow_i)
+        for a, b, l in ti.ndrange(2, 2, 2):
+            c = lo_i + ti.Vector([a, b, l])
+            if (c <= hi_i).all():
+                bucket = self.bucket(c)
+                for slot in range(self.cell_start[bucket], self.cell_start[bucket + 1]):
+                    k = self.cell_triangles[slot]
+                    t = self.contact.triangles[k]
+                    lo, hi = self.lowest[k], self.highest[k]
+                    if (t != i).all() and (c >= lo).all() and (c <= hi).all() and (c == ti.max(lo, lo_i)).all():
+                        reach = 2.0 * half + self.motion_of(i, scale) + self.triangle_motion(k, scale)
+                        near = (x[i] >= ti.min(x[t[0]], x[t[1]], x[t[2]]) - reach).all() and \
+                            (x[i] <= ti.max(x[t[0]], x[t[1]], x[t[2]]) + reach).all()   # in its grown box
+                        if near and self.pair_distance(x, i, k) < reach:
+                            self.add_pair(i, k)
+
+    @ti.func
+    def edge_pairs(self, x: ti.template(), e, half, scale):
+        """The edge-edge pairs (-e - 1, f) of surface edge e with the edges f > e closer than 2 half + m_e +
+        m_f that share no vertex with it. Edge f's grown box lies in that of each of its triangles, so the
+        pair is in the first cell of e's grown box and the owner's (`edge_owner`): it alone reports it."""
         ea = self.contact.edges[e]
         a0, a1 = x[ea[0]], x[ea[1]]
-        lo_e, hi_e = self.cell_of(ti.min(a0, a1)), self.cell_of(ti.max(a0, a1))
-        for i, j, l in ti.ndrange(2, 2, 2):               # a cell is wider than any edge: 2 a side
+        m_e = self.edge_motion(e, scale)
+        lo_e, hi_e = self.cell_of(ti.min(a0, a1) - half - m_e), self.cell_of(ti.max(a0, a1) + half + m_e)
+        for i, j, l in ti.ndrange(2, 2, 2):               # a cell is wider than any grown edge: 2 a side
             c = lo_e + ti.Vector([i, j, l])
             if (c <= hi_e).all():
                 b = self.bucket(c)
@@ -290,10 +338,11 @@ class BroadPhase:
                             apart = fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]
                             if f > e and apart and self.contact.edge_owner[f] == 3 * k + side:
                                 b0, b1 = x[fb[0]], x[fb[1]]
-                                # closer than radius only if their boxes, one grown by radius, meet
-                                if (ti.min(a0, a1) - radius <= ti.max(b0, b1)).all() and \
-                                        (ti.max(a0, a1) + radius >= ti.min(b0, b1)).all():
-                                    if self.pair_distance(x, -e - 1, f) < radius:
+                                reach = 2.0 * half + m_e + self.edge_motion(f, scale)
+                                # closer than reach only if their boxes, one grown by reach, meet
+                                if (ti.min(a0, a1) - reach <= ti.max(b0, b1)).all() and \
+                                        (ti.max(a0, a1) + reach >= ti.min(b0, b1)).all():
+                                    if self.pair_distance(x, -e - 1, f) < reach:
                                         self.add_pair(-e - 1, f)
 
     @ti.func

@@ -314,9 +314,10 @@ class Contact:
         ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.surface_count[None]):
             i = self.surface[s]
-            ti.atomic_max(self.largest_move[None], (x[i] - x_n[i]).norm())
-        D = ti.min(self.largest_move[None], self.reach[None])
-        self.broad.near_pairs(x_n, self.distance[None] + 2.0 * D)
+            self.broad.motion[i] = (x[i] - x_n[i]).norm()
+            ti.atomic_max(self.largest_move[None], self.broad.motion[i])
+        D = self.largest_move[None]
+        self.broad.near_pairs(x_n, self.distance[None], ti.min(1.0, self.reach[None] / ti.max(D, 1e-30)))
         self.step_limit[None] = float(self.largest_move[None] <= self.reach[None])
         ti.loop_config(serialize=self.serial_vertices)
         for q in range(self.pair_count[None]):
@@ -341,11 +342,13 @@ class Contact:
         self.largest_move[None] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
         for s in range(self.surface_count[None]):
-            ti.atomic_max(self.largest_move[None], h * d[self.surface[s]].norm())
+            i = self.surface[s]
+            self.broad.motion[i] = h * d[i].norm()
+            ti.atomic_max(self.largest_move[None], self.broad.motion[i])
         D, limit = self.largest_move[None], 1.0
         if D > self.reach[None]:
             limit = self.reach[None] / D
-        self.broad.near_pairs(x, self.distance[None] + 2.0 * limit * D)
+        self.broad.near_pairs(x, self.distance[None], limit)
         self.broad.find_islands()
         self.step_limit[None] = limit
         ti.loop_config(serialize=True)
@@ -404,9 +407,9 @@ class Contact:
         self.product_pass(u, u, 0.0, 1)
 
     @ti.kernel
-    def find_within(self, x: ti.template(), radius: float):
-        """pairs <- every pair closer than radius at x."""
-        self.broad.near_pairs(x, radius)
+    def find_within(self, x: ti.template(), radius: float, scale: float):
+        """pairs <- every pair closer than radius + m_a + m_b at x, m = scale * broad.motion (BroadPhase.find_pairs)."""
+        self.broad.near_pairs(x, radius, scale)
 
     @ti.func
     def share_energy(self, x: ti.template()):
