@@ -31,12 +31,10 @@ No vertex passes through a triangle: each line search starts with a step bound (
 additive CCD, Li et al. 2021, `time_of_impact`): a pair whose four points move by at most D
 relative to their mean along the step closes at most D a, so it may advance by SAFETY d(a) / D
 at a time, d(a) its distance there, until it has closed SAFETY of its first gap d0. A pair that
-slides along its triangle, or moves with it, keeps the full step. The same pass finds
-the pairs for the line search: every pair within d_hat + 2 max_i |h d_i| of the accepted
-iterate, the only ones that can come closer than d_hat along the step.
-
-The candidates come from a broad phase (fem/implicit/broad_phase.py, a spatial hash: O(n)),
-which also groups the bodies joined by pairs into islands, each with its own line search.
+slides along its triangle, or moves with it, keeps the full step. The same pass finds the pairs
+for the line search, from a broad phase (fem/implicit/broad_phase.py, a spatial hash: O(n)): every
+pair closer than d_hat + m_a + m_b, m the most a side's points move along the step (|h d_i|), the
+only ones that can come closer than d_hat; and the islands of bodies they join, each searching alone.
 
 Fields (n vertices, t triangles of the capacity, P pairs):
     triangles (t, 3)       the surface triangles' global vertex ids, outward (counter-clockwise)
@@ -49,9 +47,8 @@ Fields (n vertices, t triangles of the capacity, P pairs):
                            sides (j, j + 1) as edge ids; edge_owner (e,) 3 k + j of its first side
     pairs (P, 2)           candidate pairs of the current search: (vertex, triangle), or
                            (-e - 1, f) for edges e < f (`corners`)
-    close_ids (P, 4)       the four vertices of each pair closer than d_hat at the last evaluation
-    close_count ()         how many: the Hessian products loop over these alone (the pile's first
-                           CG of a step, with the line search's 4,500 candidates, over 130 or so)
+    close_ids (P, 4)       the four vertices of each pair closer than d_hat at the last evaluation, close_count
+                           of them: the products H u loop over these alone (the pile's first CG: 130 of 4,500)
     pair_weights (P, 4)    their c (`points_gap`)
     pair_matrix (P, 3x3)   their h^2 k m_p b"(d) n n^T (kg/s)
     sticking               the step's friction pairs (PairFriction, fem/implicit/friction.py)
@@ -293,13 +290,9 @@ class Contact:
 
     @ti.kernel
     def clear_forces(self):
-        """force <- 0: the pairs push nothing into the acceleration a_n at a step's start where the
-        history is fresh (the gradient pass reads force from the last energy pass: the last step's,
-        or another scene's). Like the ground's deep vertices (Effects.release_deep): a body placed
-        1 mm into d_hat feels 3,000 m/s^2 there (the barrier is 1000 times a vertex's inertia over
-        a step), which the step's minimisation turns into a push, but which a history started from
-        it would carry into every later step (a box placed so on another was sent back by the
-        safeguard at every step)."""
+        """force <- 0: the pairs push nothing into a_n where the history is fresh (as the ground's deep
+        vertices, Effects.release_deep): a body 1 mm into d_hat feels 3,000 m/s^2, which the step turns
+        into a push, but a history started from it would carry into every later step."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             self.force[i] = ti.Vector.zero(float, 3)
