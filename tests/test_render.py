@@ -211,6 +211,13 @@ def test_the_caption_says_each_fact_once_and_each_volume_ratio():
     # Bodies under different methods: each ratio named by its body.
     assert volume_line([("soft", "linear", 1.31), ("stiff", "corotational", 1.0)]) == \
         "volume / rest volume: linear soft 1.31 | corotational stiff 1.00"
+    # A pile: each method's range, so that the line fits on the frame's panel.
+    pile = [(f"box{k}", method, 1.0 + 0.01 * k - (0.02 if method == "linear" else 0.0))
+            for method in ("linear", "corotational") for k in range(20)]
+    assert volume_line(pile) == "volume / rest volume of 20 bodies: linear 0.98 to 1.17 | corotational 1.00 to 1.19"
+    assert volume_line(pile[20:]) == "volume / rest volume of 20 bodies: corotational 1.00 to 1.19"
+    assert volume_line(pile[:5] + pile[25:]) == \
+        "volume / rest volume: linear 5 bodies 0.98 to 1.02 | corotational 15 bodies 1.05 to 1.19"
 
 
 def test_an_overlay_blends_only_its_panel_exactly_as_over_the_whole_frame():

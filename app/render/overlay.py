@@ -112,10 +112,14 @@ def draw_text_overlay(image: np.ndarray, lines: list[str], corner: str = "top-le
     return blended(image, layer)
 
 
+LISTED = 4    # bodies named one by one in the volume line; a pile's 20 ran off the 640-pixel panel
+
+
 def volume_line(bodies: list[tuple[str, str, float]]) -> str:
     """Each body's volume / rest volume by method, every method and name said once, e.g.
     "volume / rest volume: linear 1.82 | corotational 1.00" (epcot --compare), or
-    "volume / rest volume: linear soft 1.31 | corotational stiff 1.00".
+    "volume / rest volume: linear soft 1.31 | corotational stiff 1.00"; more than LISTED bodies
+    under a method, each method's range: "volume / rest volume of 20 bodies: corotational 0.98 to 1.01".
 
     bodies: (name, method, volume ratio) of each body of the simulation. Where every method
     holds the same bodies (--compare, or all bodies under one method), the names are given
@@ -125,6 +129,12 @@ def volume_line(bodies: list[tuple[str, str, float]]) -> str:
         by_method.setdefault(method, []).append((name, ratio))
     names = [[name for name, _ in group] for group in by_method.values()]
     shared = all(n == names[0] for n in names)
+    if max(len(n) for n in names) > LISTED:        # a pile: each method's range, which fits on the panel
+        head = f" of {len(names[0])} bodies" if shared else ""
+        parts = [f"{method} " + ("" if shared else f"{len(group)} bodies ") +
+                 f"{min(r for _, r in group):.2f} to {max(r for _, r in group):.2f}"
+                 for method, group in by_method.items()]
+        return f"volume / rest volume{head}: " + " | ".join(parts)
     head = f" of {', '.join(names[0])}" if shared and len(names[0]) > 1 else ""
     parts = [f"{method} " + ", ".join(f"{ratio:.2f}" if shared else f"{name} {ratio:.2f}" for name, ratio in group)
              for method, group in by_method.items()]
