@@ -230,8 +230,8 @@ class BroadPhase:
         """pairs <- as find_pairs(x, radius, scale), the same pairs, taken from the candidates of an earlier
         search while they hold: it was made wider (radius R, motions M_i) and no surface vertex i has moved
         further since than R / 2 + M_i - radius / 2 - m_i (no pair came closer than it may); else, or where
-        the earlier search was more than twice as wide as a new one would be, a search 2 MARGIN d_hat wider
-        than radius makes new candidates. (One that overflowed is filtered too, and not reused: its pairs are
+        the earlier search was more than TOO_MANY times as wide as a new one would be, a search 2 MARGIN d_hat
+        wider than radius makes new candidates. (One that overflowed is filtered too, and not reused: its pairs are
         all there is room for.)"""
         surface = ti.static(self.contact.surface)
         self.moved[None] = 0.0             # the most a vertex came past what the candidates allow (> 0: stale)
@@ -307,7 +307,8 @@ class BroadPhase:
     def vertex_pairs(self, x: ti.template(), i, half, scale):
         """The vertex-triangle pairs (i, k) of surface vertex i closer than 2 half + m_i + m_k, each found in
         the first cell of both grown boxes (a cell is wider than either: at most 2 a side)."""
-        grow_i = half + self.motion_of(i, scale)
+        m_i = self.motion_of(i, scale)
+        grow_i = half + m_i
         lo_i, hi_i = self.cell_of(x[i] - grow_i), self.cell_of(x[i] + grow_i)
         for a, b, l in ti.ndrange(2, 2, 2):
             c = lo_i + ti.Vector([a, b, l])
@@ -318,7 +319,7 @@ class BroadPhase:
                     t = self.contact.triangles[k]
                     lo, hi = self.lowest[k], self.highest[k]
                     if (t != i).all() and (c >= lo).all() and (c <= hi).all() and (c == ti.max(lo, lo_i)).all():
-                        reach = 2.0 * half + self.motion_of(i, scale) + self.triangle_motion(k, scale)
+                        reach = 2.0 * half + m_i + self.triangle_motion(k, scale)
                         near = (x[i] >= ti.min(x[t[0]], x[t[1]], x[t[2]]) - reach).all() and \
                             (x[i] <= ti.max(x[t[0]], x[t[1]], x[t[2]]) + reach).all()   # in its grown box
                         if near and self.pair_distance(x, i, k) < reach:
@@ -360,7 +361,8 @@ class BroadPhase:
         friction pairs: bodies in different islands cannot meet in this line search, nor rub, so each
         island searches alone. (A friction pair's E counts in its first body's E_b and its gradient in
         both: one whose bodies had parted further than the candidates reach left a body's search with a
-        slope its E did not have, and it halved to nothing at every iteration: the pile, f64, 3 steps.)"""
+        slope its E did not have, and it halved to nothing at every iteration: the pile, f64, 5 of 60 steps
+        not converged, now 1.)"""
         sticks, stick_count = ti.static(self.contact.sticking.sticks, self.contact.sticking.stick_count)
         ti.loop_config(serialize=True)
         for _ in range(1):
