@@ -12,7 +12,7 @@ import types
 
 import taichi as ti
 
-from fem import environment, quick_ops
+from fem import environment, launch, quick_ops
 from fem.errors import FemError
 
 ARCHES = ("auto", "cpu", "gpu")
@@ -66,6 +66,7 @@ def init(arch="cpu", precision="f32", debug=False, restart=False, profile=False)
     brief_source_positions(not debug)
     remember_sources()
     quick_ops.install()
+    launch.install()
     announce_compiling()
     wanted = {"cpu": ti.cpu, "gpu": [ti.cuda, ti.metal, ti.vulkan], "auto": ti.cuda}[arch]
     fp = ti.f32 if precision == "f32" else ti.f64
@@ -159,6 +160,7 @@ def quick_declarations():
 
     if getattr(kernel_impl._inside_class, "quick", False):
         return
+    launch.install_data_oriented()
     patterns = kernel_impl._KERNEL_CLASS_STACKFRAME_STMT_RES
 
     def inside_class(level_of_class_stackframe):
