@@ -49,19 +49,21 @@ def install_data_oriented():
 
 
 def data_oriented(cls):
-    """Taichi's @ti.data_oriented, whose lookup answers at once an attribute of the object's own (not
-    a function: Taichi binds a kernel kept there) and a plain method of its class (not its subclass's)."""
+    """Taichi's @ti.data_oriented, whose lookup answers at once an attribute of the object's own (not a
+    function: Taichi binds a kernel kept there) and else a plain method of its class (not its subclass's),
+    as Python's own lookup would (Taichi's only binds kernels)."""
     cls = _original["data_oriented"](cls)
     taichi_getattr, own = cls.__getattribute__, cls.__dict__
     methods = {name: f for name, f in own.items() if type(f) is FunctionType and not hasattr(f, "_is_wrapped_kernel")}
 
     def lookup(obj, item):
-        if item not in own:
+        if type(own.get(item)) is not property:            # a property comes before the object's own
             value = object.__getattribute__(obj, "__dict__").get(item, lookup)
-            if value is not lookup and type(value) is not FunctionType:
-                return value
-        elif item in methods and type(obj) is cls:
-            return MethodType(methods[item], obj)
+            if value is not lookup:                         # the object's own (a test's stand-in for a method too)
+                if type(value) is not FunctionType:
+                    return value
+            elif item in methods and type(obj) is cls:
+                return MethodType(methods[item], obj)
         return taichi_getattr(obj, item)
 
     cls.__getattribute__ = lookup

@@ -125,6 +125,8 @@ def test_attributes_as_taichi_gives_them():
             return 3 * self.plain
 
     assert Later(1.0).doubled() == 3.0
+    counter.doubled = lambda: "a stand-in"     # an object's own attribute before its class's method
+    assert counter.doubled() == "a stand-in"
 
 
 def test_a_restart_compiles_again():
