@@ -31,6 +31,7 @@ from taichi.lang.util import cook_dtype
 from taichi.types.utils import is_signed
 
 _VALUES = (int, float, bool, str, type(None))    # template arguments keyed by value, as Taichi does
+PRUNE = 256                                      # instances a kernel keeps before it drops those of dead objects
 _original = {}
 
 
@@ -127,6 +128,7 @@ def call(kernel, *args, **kwargs):
         instance = _instance(kernel, plan, key, args)
         if instance is None:
             return _original["call"](kernel, *args)
+        return kernel.launch_kernel(instance.compiled, *args)     # the first launch compiles: Taichi's own
     values = []
     for i, slot, setter in plan.scalars:
         value = args[i]
@@ -191,5 +193,7 @@ def _instance(kernel, plan, key, args):
     except TypeError:
         return None
     compiled = kernel.compiled_kernels[kernel.ensure_compiled(*args)]
+    if len(plan.instances) >= PRUNE:                       # objects made anew for each call: forget the dead
+        plan.instances = {k: kept for k, kept in plan.instances.items() if all(ref() is not None for _, ref in kept.held)}
     instance = plan.instances[key] = Instance(compiled, held)
     return instance

@@ -146,3 +146,16 @@ def test_what_a_kernel_prints_is_printed(capfd):
         hello(3)
     ti.sync()
     assert capfd.readouterr().out.count("hello 3") == 2
+
+
+def test_instances_of_dead_objects_are_forgotten(monkeypatch):
+    """Each object is an instance of its own (Taichi compiles one for each, as its own launch does): once
+    a kernel keeps PRUNE of them, those of objects that died are dropped."""
+    monkeypatch.setattr(launch, "PRUNE", 4)
+    for start in range(12):
+        counter = Counter(float(start))
+        assert counter.count() == 7
+        del counter
+        gc.collect()
+    plan = Counter.count._primal._quick_plan
+    assert len(plan.instances) <= 5
