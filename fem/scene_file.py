@@ -143,7 +143,7 @@ def read_toml_scene(path, build_mesh, data=None):
         description=top.get("description", "str", ""),
         path=str(path),
         bodies=bodies,
-        effects=read_effects(top.table("effects", ["gravity", "ground", "contact", "damping"]), path),
+        effects=read_effects(top.table("effects", ["gravity", "ground", "contact", "damping", "stick_speed"]), path),
         solver=read_solver(top.table("solver", ["dt", "step", "integrator", "rho_infinity", "max_newton", "newton_tolerance", "method", "tolerance",
                                                  "max_iterations", "jacobi_omega", "preconditioner", "rotations", "sleep"])),
     )
@@ -201,6 +201,7 @@ def read_body(raw, index, path, build_mesh):
 
 
 MAX_FRICTION = 10.0      # Coulomb's coefficient: rubber on rubber is about 1; above 10 it is a typo
+MAX_STICK_SPEED = 1.0    # m/s: friction that holds below a walking pace is no longer friction
 
 REGION_KEYS = ["body", "vertices", "sphere", "box"]
 
@@ -294,6 +295,10 @@ def read_effects(t, path):
         e.alpha, e.beta = d.get("alpha", "float", 0.0), d.get("beta", "float", 0.0)
         if e.alpha < 0 or e.beta < 0:
             raise FemError(f"{path}: effects.damping alpha and beta must be >= 0")
+    e.stick_speed = t.get("stick_speed", "float", e.stick_speed)
+    if not 0 < e.stick_speed <= MAX_STICK_SPEED:
+        raise FemError(f"{path}: effects.stick_speed (m/s, below which friction holds) must be in "
+                       f"(0, {MAX_STICK_SPEED:g}], got {e.stick_speed}")
     return e
 
 

@@ -21,7 +21,6 @@ from fem import pool
 from fem.builder import initial_state, model_arrays, start_state
 from fem.errors import FemError
 from fem.scene import METHODS, Material, check_precision, select_vertices
-from fem.implicit.effects import FRICTION_SPEED
 from fem.implicit.integrators import penalty_note
 from fem.implicit.potential import ROUNDOFF
 from fem.runtime import epsilon
@@ -33,7 +32,7 @@ from fem.implicit.solver import StepInfo
 # or not by chance): its velocities are set to 0 and steps leave it exactly
 # as it is, at no cost, until an impulse (a click), a new state, material or method wakes it.
 # A body pressed into the ground, or touching another body (contact), is quiet below the smoothed
-# friction's creep speed too (FRICTION_SPEED, fem/implicit/effects.py): friction holds it, up to
+# friction's creep speed too (the scene's stick_speed, fem/implicit/effects.py): friction holds it, up to
 # that creep.
 QUIET_STEPS = 25
 QUIET_MOTION = 1e-6
@@ -139,7 +138,7 @@ class Simulation:
         fell = False
         for b, body in enumerate(self.model.bodies):
             quiet_speed = max(max(QUIET_MOTION, ROUNDOFF * epsilon()) * body.size / self.settings.dt,
-                              FRICTION_SPEED * creep[b])
+                              self.scene.effects.stick_speed * creep[b])
             quiet = self.awake[b] and speed[b] <= quiet_speed
             self.quiet_speeds[b] = quiet_speed
             self.quiet[b] = self.quiet[b] + 1 if quiet else 0

@@ -351,6 +351,10 @@ BAD_INPUTS = [
     toml_case("initial velocity on a missing vertex", "vertices = [1]", "vertices = [99]",
               ["vertex 99 does not exist"]),
     toml_case("NaN in a TOML number", "dt = 0.02", "dt = nan", ["dt", "finite"]),
+    toml_case("stick_speed = 0", "[effects]", "[effects]\nstick_speed = 0.0",
+              ["effects.stick_speed", "must be in (0, 1]", "got 0.0"]),
+    toml_case("stick_speed too fast", "[effects]", "[effects]\nstick_speed = 5.0",
+              ["effects.stick_speed", "must be in (0, 1]", "got 5.0"]),
     # coursework scenes
     BadInput("coursework scene missing", {}, ["gone-scene.txt"], ["gone-scene.txt", "no such"]),
     coursework_case("coursework: mesh file missing", replace_once(COURSEWORK_SCENE, "cube.mesh", "gone.mesh"),

@@ -33,7 +33,10 @@ SCALING = {"sizes": [5, 40], "warmup": 40, "steps": 20, "load_average": [1.1, 1.
                              {"bodies": 40, "contact_stiffness": 1e6, "ms_median": 1200.0, "gap": None,
                               "crossed_steps": 3, "sunk": 0.0003}],
                     "setup": {"newton": "1.8.0", "warp": "1.19.0", "device": "cpu", "substeps": 10, "iterations": 15,
-                              "particle_radius": 0.001}}}
+                              "particle_radius": 0.001}},
+           "stick_speeds": {"bodies": 20, "rows": [
+               {"stick_speed": 1e-3, "ms_median": 43.0, "newton": 15.7, "cg": 330.0, "unconverged": 1},
+               {"stick_speed": 1e-2, "ms_median": 29.0, "newton": 9.7, "cg": 165.0, "unconverged": 0}]}}
 
 
 def test_the_piles_are_pile_tomls_boxes_and_its_layers_repeated_above():
@@ -87,6 +90,11 @@ def test_the_rows_give_ours_and_the_peers_cost_gap_and_depth():
     assert "The peer's (at 5e4 N/m) step costs 1.7 times as much at 40 boxes as at 5" in text
     assert "Our step costs 16.0 times as much at 40 boxes as at 5 (8 times the bodies): about bodies^1.33" in text
     assert "load average 1.1 at the start and 1.3 at the end" in text and "Newton 1.8.0's VBD" in text
+    at = lines.index("### What friction's stick speed costs")
+    assert "The pile of 20 boxes" in lines[at + 2] and "`[effects] stick_speed`" in lines[at + 2]
+    assert lines[at + 6:at + 8] == ["| 1 mm/s | 43 | 15.7 | 330 | 1 of 20 |", "| 10 mm/s | 29 | 9.7 | 165 | 0 of 20 |"]
+    old = {key: value for key, value in SCALING.items() if key != "stick_speeds"}      # measured before it had them
+    assert contact_report.markdown(old) == lines[:at]
     results = {"contact": {**report_contact(), "scaling": SCALING}}
     assert contact_report.piles(results) == lines and contact_report.piles({"contact": report_contact()}) == []
 
@@ -113,6 +121,10 @@ def test_a_small_pile_is_measured_end_to_end(f32):
     lines = contact_report.markdown(out)
     assert lines[0] == "### The pile from 2 to 3 boxes, beside a peer"
     assert f"The peer, Newton's VBD: {out['peer']}." in lines
+    speeds = out["stick_speeds"]
+    assert speeds["bodies"] == 3 and [r["stick_speed"] for r in speeds["rows"]] == list(contact.STICK_SPEEDS)
+    assert all(r["newton"] >= 1 and r["ms_median"] > 0 for r in speeds["rows"])
+    assert "### What friction's stick speed costs" in lines
 
 
 def report_contact():

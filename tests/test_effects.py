@@ -93,7 +93,7 @@ def test_friction_s_smoothing_is_twice_differentiable_and_its_curvatures_are_its
     @ti.kernel
     def shape(speeds: ti.types.ndarray()):
         for i in range(out.shape[0]):
-            f0, across, along = friction_shape(ti.cast(speeds[i], ti.f64))
+            f0, across, along = friction_shape(ti.cast(speeds[i], ti.f64), ti.static(eps))
             out[i] = ti.Vector([f0, across, along], ti.f64)
 
     def at(speeds):

@@ -37,6 +37,10 @@ PEER_TIMEOUT_S = 3600
 # N/m: the peer's contact penalty, each measured: its softbody_gift example's, and one 20 times stiffer
 # (at the example's, the 20-box pile's bottom boxes sink about 2 cm into the ground)
 PEER_STIFFNESSES = (5e4, 1e6)
+# m/s: friction's stick speeds (`[effects] stick_speed`, the default first) the pile of STICK_PILE boxes (or the
+# largest measured below it) takes in turn: what holding a body more tightly costs
+STICK_SPEEDS = (1e-3, 3e-3, 1e-2)
+STICK_PILE = 20
 PEER_INSTALL = ("not measured: set PEER_PYTHON to a Python with Newton's `newton` package "
                 "(`python -m venv peer && peer/bin/pip install newton`)")
 
@@ -76,23 +80,34 @@ def closeness(surfaces, positions, ground):
 def ours(scene, warmup, steps):
     """{"on", "off"}: the scene's timed steps with contact and with it off, each {"ms_median",
     "newton", "cg" (means a step), "unconverged"}; "on" also its closeness."""
-    out = {}
-    for key, effect in (("on", scene.effects.contact), ("off", None)):
-        sim = fem.Simulation(replace(scene, effects=replace(scene.effects, contact=effect)))
-        for _ in range(warmup):
-            sim.step()
-        rows, positions = [], []
-        for _ in range(steps):
-            rows.append(sim.step())
-            positions.append(sim.positions())
-        out[key] = {"ms_median": statistics.median(row["wall_ms"] for row in rows),
-                    "newton": float(np.mean([row["newton_iters"] for row in rows])),
-                    "cg": float(np.mean([row["solver_iters"] for row in rows])),
-                    "unconverged": sum(not row["converged"] for row in rows)}
-        if effect is not None:
-            out[key].update(closeness(Surfaces(*mesh(scene)), np.array(positions), scene.effects.ground))
-        del sim
-    return out
+    on, positions = timed(scene, warmup, steps)
+    on.update(closeness(Surfaces(*mesh(scene)), positions, scene.effects.ground))
+    off, _ = timed(replace(scene, effects=replace(scene.effects, contact=None)), warmup, steps)
+    return {"on": on, "off": off}
+
+
+def timed(scene, warmup, steps):
+    """({"ms_median", "newton", "cg" (means a step), "unconverged"}, positions (steps, n, 3)): the
+    scene's `steps` timed steps after `warmup` steps from its start."""
+    sim = fem.Simulation(scene)
+    for _ in range(warmup):
+        sim.step()
+    rows, positions = [], []
+    for _ in range(steps):
+        rows.append(sim.step())
+        positions.append(sim.positions())
+    return ({"ms_median": statistics.median(row["wall_ms"] for row in rows),
+             "newton": float(np.mean([row["newton_iters"] for row in rows])),
+             "cg": float(np.mean([row["solver_iters"] for row in rows])),
+             "unconverged": sum(not row["converged"] for row in rows)}, np.array(positions))
+
+
+def stick_speeds(n, warmup, steps):
+    """{"bodies": n, "rows": [{"stick_speed" (m/s), timed's figures}]}: the pile of n boxes at each of
+    STICK_SPEEDS."""
+    scene = pile(n)
+    return {"bodies": n, "rows": [{"stick_speed": speed, **timed(replace(scene, effects=replace(
+        scene.effects, stick_speed=speed)), warmup, steps)[0]} for speed in STICK_SPEEDS]}
 
 
 def peer(scene, warmup, steps, python, stiffness):
@@ -128,6 +143,8 @@ def scaling(sizes, warmup, steps, peer_python=None):
         print(f"contact: a pile of {n} boxes", file=sys.stderr)
         out["ours"].append({"bodies": n, "vertices": sum(len(b.mesh.vertices) for b in pile(n).bodies),
                             **ours(pile(n), warmup, steps)})
+    print(f"contact: stick speeds, a pile of {min(sizes, key=lambda n: abs(n - STICK_PILE))} boxes", file=sys.stderr)
+    out["stick_speeds"] = stick_speeds(min(sizes, key=lambda n: abs(n - STICK_PILE)), warmup, steps)
     out["peer"] = PEER_INSTALL
     if peer_python:
         print(f"contact: the peer, {len(sizes) * len(PEER_STIFFNESSES)} runs", file=sys.stderr)

@@ -11,7 +11,29 @@ def piles(results):
 
 
 def markdown(scaling):
-    """The piles' rows: ours at each size, then ours beside the peer's (or why it is not measured)."""
+    """The piles' rows: ours at each size, then ours beside the peer's (or why it is not measured), then
+    what friction's stick speed costs (where measured)."""
+    return piles_and_peer(scaling) + stick_speeds(scaling)
+
+
+def stick_speeds(scaling):
+    """The pile's rows at each stick speed measured ([] where a benchmark did not measure them)."""
+    measured = scaling.get("stick_speeds")
+    if not measured:
+        return []
+    lines = ["### What friction's stick speed costs", "",
+             "Friction holds a body below its stick speed (`[effects] stick_speed`, IPC's eps_v, 1 mm/s unless a "
+             "scene sets it): a body it holds creeps, at most that fast, and while a pair sticks its friction curves "
+             "by 2 mu lambda / eps, so a smaller one holds more tightly and conditions the step worse. The pile of "
+             f"{measured['bodies']} boxes, the same steps as above, at each:", "",
+             "| stick speed | ms/step | Newton it./step | CG it./step | steps not converged |", "|---:" * 5 + "|"]
+    lines += [f"| {1e3 * r['stick_speed']:g} mm/s | {ms(r['ms_median'])} | {r['newton']:.1f} | {r['cg']:.0f} | "
+              f"{r['unconverged']} of {scaling['steps']} |" for r in measured["rows"]]
+    return lines + [""]
+
+
+def piles_and_peer(scaling):
+    """Ours at each size, then ours beside the peer's (or why it is not measured)."""
     rows, peer_runs = scaling["ours"], scaling["peer"]
     low, high = scaling["load_average"]
     sizes = scaling["sizes"]

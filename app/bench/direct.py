@@ -34,7 +34,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fem.builder import initial_state
-from fem.implicit.effects import CONTACT_STIFFNESS, FRICTION_SPEED, RECOVERY_SPEED
+from fem.implicit.effects import CONTACT_STIFFNESS, RECOVERY_SPEED
 
 try:
     import pypardiso
@@ -307,7 +307,7 @@ class DirectSolver:
         hess[:, 1, 1] = self.dt ** 2 * k * (d < 0)
         u = v[:, [0, 2]]
         s = np.linalg.norm(u, axis=1)
-        eps, lam = FRICTION_SPEED, self.dt * self.effects.friction * normal
+        eps, lam = self.effects.stick_speed, self.dt * self.effects.friction * normal
         slow = s < eps                                    # IPC's cubic below eps, |u| above
         f0 = np.where(slow, s * s / eps - s ** 3 / (3 * eps * eps), s - eps / 3)
         across = np.where(slow, 2 / eps - s / eps ** 2, 1 / np.maximum(s, eps))     # f1(s) / s

@@ -17,11 +17,11 @@ deeper than one step of RECOVERY_SPEED (a body placed into the ground) is not sh
 energy stored there: within a step its plane is RECOVERY_SPEED dt above where it starts
 (`plane`), so it rises at that speed, releasing the stored energy as it goes. Friction is
 Coulomb's, lagged as in IPC (Li et al. 2020): lambda_i is the normal force at the step's start
-(N), mu the coefficient, and f0 smooths |u| below FRICTION_SPEED (`friction_shape`, IPC's
-cubic), so a vertex that slides loses mu lambda_i of force and one nearly at rest sticks. It
-only dissipates. Sticking is smoothed: a vertex held by friction against a tangential force
-F < mu lambda_i creeps below FRICTION_SPEED (at about FRICTION_SPEED F / (2 mu lambda_i) for
-a small F), so a body resting on the ground counts as
+(N), mu the coefficient, and f0 smooths |u| below the scene's stick speed eps (`[effects]
+stick_speed`, FRICTION_SPEED unless set; `friction_shape`, IPC's cubic), so a vertex that slides
+loses mu lambda_i of force and one nearly at rest sticks. It only dissipates. Sticking is
+smoothed: a vertex held by friction against a tangential force F < mu lambda_i creeps below eps
+(at about eps F / (2 mu lambda_i) for a small F), so a body resting on the ground counts as
 quiet below that speed (fem/simulation.py puts it to sleep).
 
 Fields (n vertices of the capacity; one entry when the scene has no ground):
@@ -30,6 +30,7 @@ Fields (n vertices of the capacity; one entry when the scene has no ground):
     gravity ()            g, m/s^2
     ground ()             plane height y_g, m
     friction ()           mu, Coulomb's coefficient
+    stick_speed ()        eps, m/s: friction's smoothing speed, below which it holds (float64)
     contact_stiffness ()  k, 1/s^2 (per unit mass)
     energy_stiffness ()   k at the scene's dt: the contact energy measured (`contact_energy`)
     plane (n,)            the plane's height for vertex i in this step, m: y_g, or lower for a
@@ -44,20 +45,20 @@ Fields (n vertices of the capacity; one entry when the scene has no ground):
 import taichi as ti
 
 CONTACT_STIFFNESS = 1000.0   # k dt^2: the penalty's stiffness in units of a vertex's inertia over one step
-FRICTION_SPEED = 1e-3        # m/s: below this tangential speed friction is smoothed (sticking);
-                             # a body resting on the ground may creep at up to this speed (fem/simulation.py)
+FRICTION_SPEED = 1e-3        # m/s: the default stick speed: below this tangential speed friction is smoothed
+                             # (sticking); a body it holds may creep at up to this speed (fem/simulation.py)
 RECOVERY_SPEED = 1.0         # m/s: how fast a vertex placed deep in the ground rises out of it
 UNREACHABLE = 1e30           # m: a plane no vertex is below
 
 
 @ti.func
-def friction_shape(s):
-    """IPC's smoothing of a speed s = |u| for lagged friction (Li et al. 2020), eps = FRICTION_SPEED:
+def friction_shape(s, eps):
+    """IPC's smoothing of a speed s = |u| for lagged friction (Li et al. 2020) below eps (the stick speed,
+    of s's type):
     f0(s) = s^2 / eps - s^3 / (3 eps^2) below eps, s - eps / 3 above, so the force mu lambda f1(s),
     f1 = f0' = 2 s / eps - s^2 / eps^2, rises from 0 to Coulomb's mu lambda at eps with no kink
     (f0 is twice differentiable: Newton's model holds across sticking and sliding). Returns
     (f0(s), f1(s) / s, f1'(s)): the energy, and the Hessian's curvatures across and along u."""
-    eps = ti.static(FRICTION_SPEED)
     f0, across, along = s - eps / 3.0, 1.0 / ti.max(s, eps), 0.0 * s
     if s < eps:
         f0 = s * s / eps - s * s * s / (3.0 * eps * eps)
@@ -78,6 +79,7 @@ class Effects:
         self.pins = switches.pins
         self.serial_vertices = switches.serial_vertices
         self.mass_damping = ti.field(float, ())
+        self.stick_speed = ti.field(ti.f64, ())
         self.majorize = ti.field(ti.i32, ())
         self.stiffness_damping = ti.field(float, ())
         self.gravity = ti.Vector.field(3, float, ())
@@ -98,6 +100,7 @@ class Effects:
         self.gravity[None] = effects.gravity or (0.0, 0.0, 0.0)
         self.ground[None] = effects.ground or 0.0
         self.friction[None] = effects.friction
+        self.stick_speed[None] = effects.stick_speed
         if self.has_contact:
             self.contact.load(effects.contact)
 
@@ -171,7 +174,7 @@ class Effects:
     def friction_energy(self, i, v, h):
         """h mu lambda_i f0(|u|) of vertex i at velocity v, float64 (J)."""
         u = ti.cast(ti.Vector([v[0], v[2]]), ti.f64).norm()
-        return ti.cast(h * self.friction[None] * self.normal_force[i], ti.f64) * friction_shape(u)[0]
+        return ti.cast(h * self.friction[None] * self.normal_force[i], ti.f64) * friction_shape(u, self.stick_speed[None])[0]
 
     @ti.func
     def contact_force(self, i, x, v, h):
@@ -193,7 +196,7 @@ class Effects:
     def friction_model(self, s):
         """`friction_shape` at speed s as Newton's model takes it: while `majorize` is on, the
         curvature along the slide is the one across it (the ground's and the pairs' friction)."""
-        f0, across, along = friction_shape(s)
+        f0, across, along = friction_shape(s, ti.cast(self.stick_speed[None], float))
         if self.majorize[None]:
             along = across
         return f0, across, along
@@ -220,7 +223,7 @@ class Effects:
             km = self.contact_stiffness[None] * self.model.mass[i]
             self.plane[i] = ti.min(self.ground[None], xn[i][1] + ti.static(RECOVERY_SPEED) * dt)
             self.normal_force[i] = km * ti.max(0.0, self.plane[i] - xn[i][1])
-            drag = h * self.friction[None] * self.normal_force[i] * friction_shape(0.0)[1]
+            drag = h * self.friction[None] * self.normal_force[i] * 2.0 / ti.cast(self.stick_speed[None], float)
             self.contact_hessian[i] = ti.Vector([drag, h * h * km * (x[i][1] < self.plane[i]), drag, 0.0])
 
     @ti.kernel
