@@ -117,7 +117,8 @@ class Effects:
     ground: float | None = None         # ground plane height y (m)
     friction: float = 0.5               # Coulomb's coefficient mu on the ground (>= 0)
     contact: ContactEffect | None = None   # between bodies and within one
-    stick_speed: float = 1e-3           # m/s: friction (ground's and contact's) holds below this tangential speed
+    stick_speed: float = 1e-3           # m/s: friction (ground's and contact's) holds below this tangential
+                                        # speed (IPC's eps_v; fem/implicit/effects.py's FRICTION_SPEED)
     alpha: float = 0.0                  # Rayleigh damping D = alpha M + beta K
     beta: float = 0.0
 

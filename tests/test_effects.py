@@ -86,7 +86,9 @@ def test_friction_s_smoothing_is_twice_differentiable_and_its_curvatures_are_its
     import taichi as ti
 
     from fem.implicit.effects import FRICTION_SPEED, friction_shape
+    from fem.scene import Effects
     eps = FRICTION_SPEED
+    assert Effects().stick_speed == eps                   # a scene's default
     s = np.concatenate([np.linspace(1e-6, 3 * eps, 301), eps * (1 + np.array([-1e-7, 1e-7]))])
     out = ti.Vector.field(3, ti.f64, len(s))
 

@@ -149,3 +149,16 @@ def test_the_readme_lists_every_built_in_scene_and_every_stats_column(f32):
     row = sim.stats()
     listed = readme.split("`--stats` writes one JSON object per step", 1)[1].split("`--stats -`", 1)[0]
     assert [key for key in row if not re.search(rf"\b{key}\b", listed)] == []
+
+
+def test_the_effects_that_scenes_readme_shows_load_as_it_says():
+    """scenes/README.md's sample [effects] table, read by the scene loader: each value as its comment says."""
+    import tomllib
+
+    from fem.scene_file import Table, read_effects
+    sample = (ROOT / "scenes" / "README.md").read_text().split("```toml")[1].split("```")[0]
+    table = tomllib.loads(sample)["effects"]
+    effects = read_effects(Table(table, "scenes/README.md: effects", list(table)), "scenes/README.md")
+    assert effects.gravity == (0.0, -9.81, 0.0) and effects.ground == 0.0 and effects.friction == 0.5
+    assert (effects.contact.distance, effects.contact.friction) == (0.01, 0.3)
+    assert (effects.alpha, effects.beta, effects.stick_speed) == (0.1, 0.01, 0.001)

@@ -37,8 +37,8 @@ PEER_TIMEOUT_S = 3600
 # N/m: the peer's contact penalty, each measured: its softbody_gift example's, and one 20 times stiffer
 # (at the example's, the 20-box pile's bottom boxes sink about 2 cm into the ground)
 PEER_STIFFNESSES = (5e4, 1e6)
-# m/s: friction's stick speeds (`[effects] stick_speed`, the default first) the pile of STICK_PILE boxes (or the
-# largest measured below it) takes in turn: what holding a body more tightly costs
+# m/s: friction's stick speeds (`[effects] stick_speed`, the default first) the pile of STICK_PILE boxes (or of
+# the size measured nearest to it) takes in turn: what holding a body more tightly costs
 STICK_SPEEDS = (1e-3, 3e-3, 1e-2)
 STICK_PILE = 20
 PEER_INSTALL = ("not measured: set PEER_PYTHON to a Python with Newton's `newton` package "
@@ -143,8 +143,9 @@ def scaling(sizes, warmup, steps, peer_python=None):
         print(f"contact: a pile of {n} boxes", file=sys.stderr)
         out["ours"].append({"bodies": n, "vertices": sum(len(b.mesh.vertices) for b in pile(n).bodies),
                             **ours(pile(n), warmup, steps)})
-    print(f"contact: stick speeds, a pile of {min(sizes, key=lambda n: abs(n - STICK_PILE))} boxes", file=sys.stderr)
-    out["stick_speeds"] = stick_speeds(min(sizes, key=lambda n: abs(n - STICK_PILE)), warmup, steps)
+    n = min(sizes, key=lambda size: abs(size - STICK_PILE))
+    print(f"contact: stick speeds, a pile of {n} boxes", file=sys.stderr)
+    out["stick_speeds"] = stick_speeds(n, warmup, steps)
     out["peer"] = PEER_INSTALL
     if peer_python:
         print(f"contact: the peer, {len(sizes) * len(PEER_STIFFNESSES)} runs", file=sys.stderr)
