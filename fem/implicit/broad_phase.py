@@ -315,15 +315,16 @@ class BroadPhase:
             if (c <= hi_i).all():
                 bucket = self.bucket(c)
                 for slot in range(self.cell_start[bucket], self.cell_start[bucket + 1]):
+                    # nested tests, cheapest first: Taichi's `and` evaluates both sides
                     k = self.cell_triangles[slot]
-                    t = self.contact.triangles[k]
-                    lo, hi = self.lowest[k], self.highest[k]
-                    if (t != i).all() and (c >= lo).all() and (c <= hi).all() and (c == ti.max(lo, lo_i)).all():
-                        reach = 2.0 * half + m_i + self.triangle_motion(k, scale)
-                        near = (x[i] >= ti.min(x[t[0]], x[t[1]], x[t[2]]) - reach).all() and \
-                            (x[i] <= ti.max(x[t[0]], x[t[1]], x[t[2]]) + reach).all()   # in its grown box
-                        if near and self.pair_distance(x, i, k) < reach:
-                            self.add_pair(i, k)
+                    if (c == ti.max(self.lowest[k], lo_i)).all() and (c <= self.highest[k]).all():
+                        t = self.contact.triangles[k]
+                        if (t != i).all():
+                            reach = 2.0 * half + m_i + self.triangle_motion(k, scale)
+                            if (x[i] >= ti.min(x[t[0]], x[t[1]], x[t[2]]) - reach).all() and \
+                                    (x[i] <= ti.max(x[t[0]], x[t[1]], x[t[2]]) + reach).all():   # in its grown box
+                                if self.pair_distance(x, i, k) < reach:
+                                    self.add_pair(i, k)
 
     @ti.func
     def edge_pairs(self, x: ti.template(), e, half, scale):
@@ -340,20 +341,20 @@ class BroadPhase:
                 b = self.bucket(c)
                 for slot in range(self.cell_start[b], self.cell_start[b + 1]):
                     k = self.cell_triangles[slot]
-                    lo, hi = self.lowest[k], self.highest[k]
-                    if (c >= lo).all() and (c <= hi).all() and (c == ti.max(lo, lo_e)).all():
+                    if (c == ti.max(self.lowest[k], lo_e)).all() and (c <= self.highest[k]).all():
                         for side in ti.static(range(3)):
                             f = self.contact.triangle_edges[k][side]
-                            fb = self.contact.edges[f]
-                            apart = fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]
-                            if f > e and apart and self.contact.edge_owner[f] == 3 * k + side:
-                                b0, b1 = x[fb[0]], x[fb[1]]
-                                reach = 2.0 * half + m_e + self.edge_motion(f, scale)
-                                # closer than reach only if their boxes, one grown by reach, meet
-                                if (ti.min(a0, a1) - reach <= ti.max(b0, b1)).all() and \
-                                        (ti.max(a0, a1) + reach >= ti.min(b0, b1)).all():
-                                    if self.pair_distance(x, -e - 1, f) < reach:
-                                        self.add_pair(-e - 1, f)
+                            if f > e:                 # nested tests, cheapest first: Taichi's `and` evaluates
+                                fb = self.contact.edges[f]    # both sides
+                                if self.contact.edge_owner[f] == 3 * k + side and \
+                                        fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]:
+                                    b0, b1 = x[fb[0]], x[fb[1]]
+                                    reach = 2.0 * half + m_e + self.edge_motion(f, scale)
+                                    # closer than reach only if their boxes, one grown by reach, meet
+                                    if (ti.min(a0, a1) - reach <= ti.max(b0, b1)).all() and \
+                                            (ti.max(a0, a1) + reach >= ti.min(b0, b1)).all():
+                                        if self.pair_distance(x, -e - 1, f) < reach:
+                                            self.add_pair(-e - 1, f)
 
     @ti.func
     def find_islands(self):
