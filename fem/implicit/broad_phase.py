@@ -344,8 +344,9 @@ class BroadPhase:
                     if (c == ti.max(self.lowest[k], lo_e)).all() and (c <= self.highest[k]).all():
                         for side in ti.static(range(3)):
                             f = self.contact.triangle_edges[k][side]
-                            if f > e:                 # nested tests, cheapest first: Taichi's `and` evaluates
-                                fb = self.contact.edges[f]    # both sides
+                            # nested tests, cheapest first (as in vertex_pairs)
+                            if f > e:
+                                fb = self.contact.edges[f]
                                 if self.contact.edge_owner[f] == 3 * k + side and \
                                         fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]:
                                     b0, b1 = x[fb[0]], x[fb[1]]
