@@ -6,19 +6,17 @@ points may move in the line search to come (`motion`; 0 for a search at rest): a
 looks no further than r although a falling box beside it moves 4.5 cm. Each side's box grows by
 r / 2 + its own m, and a pair is reported in the first grid cell that both grown boxes share.
 
-A uniform grid hashed into `table_size` buckets (Teschner et al. 2003), rebuilt at every
-new search in three parallel passes and one prefix sum (`near_pairs` filters the candidates of
-a wider search instead while they still hold: a Verlet list). A cell is at least as wide as every
-triangle's grown box, so each triangle lies in at most 8 cells, and a vertex or an edge looks in
-the (at most 8) its own grown box touches: O(n) work for n surface vertices, edges and triangles.
+Two uniform grids hashed into `buckets` buckets (Teschner et al. 2003), one of the triangles and one of
+the edges, rebuilt at every new search (`near_pairs` filters the candidates of a wider search instead
+while they still hold: a Verlet list). A cell is at least as wide as every triangle's grown box, so
+each triangle and edge lies in at most 8 cells, and a vertex or an edge looks in the (at most 8) its
+own grown box touches: O(n) work for n surface vertices, edges and triangles. An edge e looks only at
+the edges f > e of each bucket, which a search on one thread lists in order (`first_after`).
 
 Fields (n vertices, t triangles of the capacity):
     cell ()                 the cells' width, m
-    cell_count (table,)     triangles per bucket, then a cursor while filling
-    cell_start (table + 1,) where each bucket's triangles start in cell_triangles
-    cell_triangles (8 t,)   the triangles of every bucket, bucket by bucket
-    lowest, highest (t, 3)  each triangle's grown box, as its lowest and highest cells (the first
-                            pass's; the later passes read them)
+    buckets ()              the buckets in use: a power of two, 2 a triangle or more
+    triangle_grid, edge_grid  the grids (`Grid`)
     motion (n,)             how far each surface vertex may move, m (times the search's `scale`)
     island (bodies,)        the lowest body id joined to a body by candidate pairs
     candidates (pairs,)     the pairs of the last search made wider than asked (`near_pairs`)
@@ -97,6 +95,19 @@ def segment_weights(a0, a1, b0, b1):
 
 
 @ti.data_oriented
+class Grid:
+    """Items (triangles or edges) in the buckets of a hashed uniform grid: each in every bucket its grown
+    box touches, once (`BroadPhase.fill`)."""
+
+    def __init__(self, size, items):
+        self.count = ti.field(ti.i32, size)         # items per bucket, then a cursor while filling
+        self.start = ti.field(ti.i32, size + 1)     # where each bucket's items start in `entries`
+        self.entries = ti.field(ti.i32, 8 * items)  # the items of every bucket, bucket by bucket
+        self.lowest = ti.Vector.field(3, ti.i32, items)   # each item's grown box, as its lowest and highest cells
+        self.highest = ti.Vector.field(3, ti.i32, items)
+
+
+@ti.data_oriented
 class BroadPhase:
     """The candidate pairs of `contact` (its triangles, surface and pair fields), and islands."""
 
@@ -106,11 +117,9 @@ class BroadPhase:
         self.serial_vertices = switches.serial_vertices
         self.table_size = next_power_of_two(2 * t)
         self.cell = ti.field(float, ())
-        self.cell_count = ti.field(ti.i32, self.table_size)
-        self.cell_start = ti.field(ti.i32, self.table_size + 1)
-        self.cell_triangles = ti.field(ti.i32, 8 * t)
-        self.lowest = ti.Vector.field(3, ti.i32, t)       # each triangle's grown box's cells, this search
-        self.highest = ti.Vector.field(3, ti.i32, t)
+        self.buckets = ti.field(ti.i32, ())     # the table's buckets in use, a power of two
+        self.triangle_grid = Grid(self.table_size, t)
+        self.edge_grid = Grid(self.table_size, contact.edges.shape[0])
         self.island = ti.field(ti.i32, model.capacity.bodies)
         self.candidates = ti.Vector.field(2, ti.i32, contact.pair_capacity)
         self.candidate_count = ti.field(ti.i32, ())
@@ -121,8 +130,9 @@ class BroadPhase:
         self.moved = ti.field(float, ())
 
     def forget(self):
-        """A new surface: the candidates are none."""
+        """A new surface: the candidates are none, and a table of 2 buckets a triangle."""
         self.searched_radius[None] = -1.0
+        self.buckets[None] = min(self.table_size, next_power_of_two(2 * self.contact.triangle_count[None]))
 
     @ti.func
     def cell_of(self, p):
@@ -132,7 +142,7 @@ class BroadPhase:
     def bucket(self, c):
         """The table entry of grid cell c (a spatial hash, Teschner et al. 2003)."""
         h = (c[0] * 73856093) ^ (c[1] * 19349663) ^ (c[2] * 83492791)
-        return h & ti.static(self.table_size - 1)
+        return h & (self.buckets[None] - 1)
 
     @ti.func
     def motion_of(self, i, scale):
@@ -158,16 +168,18 @@ class BroadPhase:
         return self.cell_of(lo), self.cell_of(hi)
 
     @ti.func
-    def first_time(self, lo, hi, c):
-        """1 where no cell of the triangle's box [lo, hi] before c (in loop order) has c's
-        bucket: each triangle goes into a bucket once."""
-        b, first = self.bucket(c), 1
-        for i, j, k in ti.ndrange(2, 2, 2):
-            e = lo + ti.Vector([i, j, k])
-            before = (e[0] < c[0]) or (e[0] == c[0] and (e[1] < c[1] or (e[1] == c[1] and e[2] < c[2])))
-            if (e <= hi).all() and before and self.bucket(e) == b:
-                first = 0
-        return first
+    def box_buckets(self, lo, hi):
+        """The buckets of the (at most 8) cells of box [lo, hi], in loop order, -1 where the box has no such
+        cell or an earlier one has the same bucket: each item goes into a bucket once."""
+        out = ti.Vector([-1] * 8, ti.i32)
+        for n in ti.static(range(8)):
+            c = lo + ti.Vector([n // 4, n // 2 % 2, n % 2])
+            if (c <= hi).all():
+                out[n] = self.bucket(c)
+                for m in ti.static(range(n)):
+                    if out[m] == out[n]:
+                        out[n] = -1
+        return out
 
     @ti.func
     def find_pairs(self, x: ti.template(), radius, scale=0.0, on=1):
@@ -176,7 +188,7 @@ class BroadPhase:
         points move (`motion_of`: scale * motion; none where scale = 0). Each side's box grows by
         radius / 2 + its m, and a pair is found in the first grid cell that both grown boxes share.
         on = 0: the loops run over nothing."""
-        nt = self.contact.triangle_count[None]
+        nt, ne = self.contact.triangle_count[None], self.contact.edge_count[None]
         half = 0.5 * radius
         self.cell[None] = 0.0
         ti.loop_config(serialize=self.serial_vertices)
@@ -185,34 +197,17 @@ class BroadPhase:
             size = ti.max(x[t[0]], x[t[1]], x[t[2]]) - ti.min(x[t[0]], x[t[1]], x[t[2]])
             ti.atomic_max(self.cell[None], size.max() + 2.0 * (half + self.triangle_motion(k, scale)))
         ti.loop_config(serialize=self.serial_vertices)
-        for b in range(self.table_size * on):
-            self.cell_count[b] = 0
-        ti.loop_config(serialize=self.serial_vertices)
         for k in range(nt * on):
             lo, hi = self.triangle_cells(x, k, half + self.triangle_motion(k, scale))
-            self.lowest[k], self.highest[k] = lo, hi
-            for i, j, l in ti.ndrange(2, 2, 2):
-                c = lo + ti.Vector([i, j, l])
-                if (c <= hi).all() and self.first_time(lo, hi, c):
-                    ti.atomic_add(self.cell_count[self.bucket(c)], 1)
-        ti.loop_config(serialize=True)
-        for _ in range(on):
-            total = 0
-            for b in range(self.table_size * on):
-                self.cell_start[b] = total
-                total += self.cell_count[b]
-            self.cell_start[self.table_size] = total
+            self.triangle_grid.lowest[k], self.triangle_grid.highest[k] = lo, hi
         ti.loop_config(serialize=self.serial_vertices)
-        for b in range(self.table_size * on):
-            self.cell_count[b] = 0
-        ti.loop_config(serialize=self.serial_vertices)
-        for k in range(nt * on):
-            lo, hi = self.lowest[k], self.highest[k]
-            for i, j, l in ti.ndrange(2, 2, 2):
-                c = lo + ti.Vector([i, j, l])
-                if (c <= hi).all() and self.first_time(lo, hi, c):
-                    b = self.bucket(c)
-                    self.cell_triangles[self.cell_start[b] + ti.atomic_add(self.cell_count[b], 1)] = k
+        for e in range(ne * on):          # an edge's grown box lies in its triangles': at most 2 cells a side
+            ends, grow = self.contact.edges[e], half + self.edge_motion(e, scale)
+            a, b = x[ends[0]], x[ends[1]]
+            self.edge_grid.lowest[e], self.edge_grid.highest[e] = \
+                self.cell_of(ti.min(a, b) - grow), self.cell_of(ti.max(a, b) + grow)
+        self.fill(self.triangle_grid, nt, on)
+        self.fill(self.edge_grid, ne, on)
         if on:
             self.contact.pair_count[None], self.contact.overflow[None] = 0, 0
         ti.loop_config(serialize=self.serial_vertices)
@@ -224,6 +219,34 @@ class BroadPhase:
         ti.loop_config(serialize=True)
         for _ in range(on):
             self.contact.pair_count[None] = ti.min(self.contact.pair_count[None], ti.static(self.contact.pair_capacity))
+
+    @ti.func
+    def fill(self, grid: ti.template(), n, on):
+        """grid's buckets <- its first n items, each in the bucket of every cell of its box (lowest to
+        highest) once (on = 0: nothing)."""
+        ti.loop_config(serialize=self.serial_vertices)
+        for b in range(self.buckets[None] * on):
+            grid.count[b] = 0
+        ti.loop_config(serialize=self.serial_vertices)
+        for k in range(n * on):
+            cells = self.box_buckets(grid.lowest[k], grid.highest[k])
+            for m in ti.static(range(8)):
+                if cells[m] >= 0:
+                    ti.atomic_add(grid.count[cells[m]], 1)
+        ti.loop_config(serialize=True)
+        for _ in range(on):
+            total = 0
+            for b in range(self.buckets[None]):
+                grid.start[b] = total
+                total += grid.count[b]
+                grid.count[b] = 0
+            grid.start[self.buckets[None]] = total
+        ti.loop_config(serialize=self.serial_vertices)
+        for k in range(n * on):
+            cells = self.box_buckets(grid.lowest[k], grid.highest[k])
+            for m in ti.static(range(8)):
+                if cells[m] >= 0:
+                    grid.entries[grid.start[cells[m]] + ti.atomic_add(grid.count[cells[m]], 1)] = k
 
     @ti.func
     def near_pairs(self, x: ti.template(), radius, scale=0.0):
@@ -314,10 +337,10 @@ class BroadPhase:
             c = lo_i + ti.Vector([a, b, l])
             if (c <= hi_i).all():
                 bucket = self.bucket(c)
-                for slot in range(self.cell_start[bucket], self.cell_start[bucket + 1]):
+                for slot in range(self.triangle_grid.start[bucket], self.triangle_grid.start[bucket + 1]):
                     # nested tests, cheapest first: Taichi's `and` evaluates both sides
-                    k = self.cell_triangles[slot]
-                    if (c == ti.max(self.lowest[k], lo_i)).all() and (c <= self.highest[k]).all():
+                    k = self.triangle_grid.entries[slot]
+                    if (c == ti.max(self.triangle_grid.lowest[k], lo_i)).all() and (c <= self.triangle_grid.highest[k]).all():
                         t = self.contact.triangles[k]
                         if (t != i).all():
                             reach = 2.0 * half + m_i + self.triangle_motion(k, scale)
@@ -327,35 +350,43 @@ class BroadPhase:
                                     self.add_pair(i, k)
 
     @ti.func
+    def first_after(self, b, e):
+        """The first slot of bucket b whose edge is above e: a serial fill lists each bucket's edges in order."""
+        lo, hi = self.edge_grid.start[b], self.edge_grid.start[b + 1]
+        if ti.static(self.serial_vertices):
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if self.edge_grid.entries[mid] > e:
+                    hi = mid
+                else:
+                    lo = mid + 1
+        return lo
+
+    @ti.func
     def edge_pairs(self, x: ti.template(), e, half, scale):
         """The edge-edge pairs (-e - 1, f) of surface edge e with the edges f > e closer than 2 half + m_e +
-        m_f that share no vertex with it. Edge f's grown box lies in that of each of its triangles, so the
-        pair is in the first cell of e's grown box and the owner's (`edge_owner`): it alone reports it."""
+        m_f that share no vertex with it, each found in the first cell of both grown boxes."""
         ea = self.contact.edges[e]
         a0, a1 = x[ea[0]], x[ea[1]]
         m_e = self.edge_motion(e, scale)
-        lo_e, hi_e = self.cell_of(ti.min(a0, a1) - half - m_e), self.cell_of(ti.max(a0, a1) + half + m_e)
-        for i, j, l in ti.ndrange(2, 2, 2):               # a cell is wider than any grown edge: 2 a side
+        lo_e, hi_e = self.edge_grid.lowest[e], self.edge_grid.highest[e]
+        for i, j, l in ti.ndrange(2, 2, 2):
             c = lo_e + ti.Vector([i, j, l])
             if (c <= hi_e).all():
                 b = self.bucket(c)
-                for slot in range(self.cell_start[b], self.cell_start[b + 1]):
-                    k = self.cell_triangles[slot]
-                    if (c == ti.max(self.lowest[k], lo_e)).all() and (c <= self.highest[k]).all():
-                        for side in ti.static(range(3)):
-                            f = self.contact.triangle_edges[k][side]
-                            # nested tests, cheapest first (as in vertex_pairs)
-                            if f > e:
-                                fb = self.contact.edges[f]
-                                if self.contact.edge_owner[f] == 3 * k + side and \
-                                        fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]:
-                                    b0, b1 = x[fb[0]], x[fb[1]]
-                                    reach = 2.0 * half + m_e + self.edge_motion(f, scale)
-                                    # closer than reach only if their boxes, one grown by reach, meet
-                                    if (ti.min(a0, a1) - reach <= ti.max(b0, b1)).all() and \
-                                            (ti.max(a0, a1) + reach >= ti.min(b0, b1)).all():
-                                        if self.pair_distance(x, -e - 1, f) < reach:
-                                            self.add_pair(-e - 1, f)
+                for slot in range(self.first_after(b, e), self.edge_grid.start[b + 1]):
+                    f = self.edge_grid.entries[slot]            # nested tests, cheapest first (as in vertex_pairs)
+                    if f > e:
+                        if (c == ti.max(self.edge_grid.lowest[f], lo_e)).all() and (c <= self.edge_grid.highest[f]).all():
+                            fb = self.contact.edges[f]
+                            if fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]:
+                                b0, b1 = x[fb[0]], x[fb[1]]
+                                reach = 2.0 * half + m_e + self.edge_motion(f, scale)
+                                # closer than reach only if their boxes, one grown by reach, meet
+                                if (ti.min(a0, a1) - reach <= ti.max(b0, b1)).all() and \
+                                        (ti.max(a0, a1) + reach >= ti.min(b0, b1)).all():
+                                    if self.pair_distance(x, -e - 1, f) < reach:
+                                        self.add_pair(-e - 1, f)
 
     @ti.func
     def find_islands(self):

@@ -43,8 +43,7 @@ Fields (n vertices, t triangles of the capacity, P pairs):
     friction ()            mu, Coulomb's coefficient between bodies
     reach ()               m: the most a line search moves a vertex before its step is cut
     island (bodies,)       the lowest body id joined to a body by candidate pairs (the broad phase's)
-    edges (e, 2)           the surface edges (sorted vertex ids); triangle_edges (t, 3) each triangle's
-                           sides (j, j + 1) as edge ids; edge_owner (e,) 3 k + j of its first side
+    edges (e, 2)           the surface edges (sorted vertex ids, in order)
     pairs (P, 2)           candidate pairs of the current search: (vertex, triangle), or
                            (-e - 1, f) for edges e < f (`corners`)
     close_ids (P, 4)       the four vertices of each pair closer than d_hat at the last evaluation, close_count
@@ -95,8 +94,6 @@ class Contact:
         self.surface_count = ti.field(ti.i32, ())
         self.edges = ti.Vector.field(2, ti.i32, 3 * t // 2 + 3)
         self.edge_count = ti.field(ti.i32, ())
-        self.triangle_edges = ti.Vector.field(3, ti.i32, t)
-        self.edge_owner = ti.field(ti.i32, 3 * t // 2 + 3)
         self.distance = ti.field(float, ())
         self.stiffness = ti.field(float, ())
         self.friction = ti.field(float, ())
@@ -131,10 +128,8 @@ class Contact:
         self.model.write(self.surface, surface)
         self.triangle_count[None], self.surface_count[None] = len(triangles), len(surface)
         sides = np.sort(np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2), axis=2).reshape(-1, 2)
-        edges, first, side_edge = np.unique(sides, axis=0, return_index=True, return_inverse=True)
+        edges = np.unique(sides, axis=0)
         self.model.write(self.edges, edges.astype(np.int32))
-        self.model.write(self.triangle_edges, side_edge.reshape(-1, 3).astype(np.int32))
-        self.model.write(self.edge_owner, first.astype(np.int32))          # side 3 k + j of triangle k
         self.edge_count[None] = len(edges)
         rest = self.model.rest_positions_np
         edges = np.linalg.norm(rest[triangles] - rest[np.roll(triangles, 1, axis=1)], axis=2)
