@@ -95,6 +95,7 @@ def segment_weights(a0, a1, b0, b1):
 
 
 @ti.data_oriented
+@ti.data_oriented
 class Grid:
     """Items (triangles or edges) in the buckets of a hashed uniform grid: each in every bucket its grown
     box touches, once (`BroadPhase.fill`)."""
@@ -105,6 +106,11 @@ class Grid:
         self.entries = ti.field(ti.i32, 8 * items)  # the items of every bucket, bucket by bucket
         self.lowest = ti.Vector.field(3, ti.i32, items)   # each item's grown box, as its lowest and highest cells
         self.highest = ti.Vector.field(3, ti.i32, items)
+
+    @ti.func
+    def first_shared(self, k, c, lo):
+        """Cell c is the first cell (lowest) that item k's box shares with a box whose lowest cell is lo."""
+        return (c == ti.max(self.lowest[k], lo)).all() and (c <= self.highest[k]).all()
 
 
 @ti.data_oriented
@@ -340,7 +346,7 @@ class BroadPhase:
                 for slot in range(self.triangle_grid.start[bucket], self.triangle_grid.start[bucket + 1]):
                     # nested tests, cheapest first: Taichi's `and` evaluates both sides
                     k = self.triangle_grid.entries[slot]
-                    if (c == ti.max(self.triangle_grid.lowest[k], lo_i)).all() and (c <= self.triangle_grid.highest[k]).all():
+                    if self.triangle_grid.first_shared(k, c, lo_i):
                         t = self.contact.triangles[k]
                         if (t != i).all():
                             reach = 2.0 * half + m_i + self.triangle_motion(k, scale)
@@ -377,7 +383,7 @@ class BroadPhase:
                 for slot in range(self.first_after(b, e), self.edge_grid.start[b + 1]):
                     f = self.edge_grid.entries[slot]            # nested tests, cheapest first (as in vertex_pairs)
                     if f > e:
-                        if (c == ti.max(self.edge_grid.lowest[f], lo_e)).all() and (c <= self.edge_grid.highest[f]).all():
+                        if self.edge_grid.first_shared(f, c, lo_e):
                             fb = self.contact.edges[f]
                             if fb[0] != ea[0] and fb[0] != ea[1] and fb[1] != ea[0] and fb[1] != ea[1]:
                                 b0, b1 = x[fb[0]], x[fb[1]]

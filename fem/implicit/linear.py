@@ -77,21 +77,25 @@ class LinearSolver:
         """The materials or dt changed: the next Jacobi iteration finds its weight again."""
         self.omega_key = None
 
-    def solve(self, cM, cK, target, max_iterations, preconditioner, forcing=0.0):
-        """H d = rhs from the first guess in `solution`, until the weighted residual
-        sum_b |r_b|^2 w_b <= target; returns the iterations. preconditioner: "jacobi" or
-        "two-level" (PCG), None (Jacobi iteration). `capped` <- it stopped at max_iterations unconverged.
+    def solve(self, cM, cK, target, max_iterations, preconditioner, start, warm, rebuild=False, forcing=0.0):
+        """H d = rhs from the first guess `start.first_direction(warm)` writes into `solution`, until the
+        weighted residual sum_b |r_b|^2 w_b <= target; returns the iterations. preconditioner: "jacobi" or
+        "two-level" (PCG), None (Jacobi iteration). rebuild: the blocks of the preconditioner are built
+        first, at the rotations now. Both in the solve's first launch (`begin`): two launches fewer a
+        Newton iteration. `capped` <- it stopped at max_iterations unconverged.
         forcing: inexact Newton's factor (Newton.solve's target is max(1, forcing rho), rho its
         largest body's); where each body runs its own PCG, each stops at max(1, forcing rho_b), its own
         (IncrementalPotential.body_ratio): a stalled body's rho let every other body stop at once."""
         if preconditioner is not None:
             two_level = preconditioner == "two-level"
             apart = self.separate and len(self.model.bodies) > 1 and not two_level   # one body: PCG as it was
-            active, iterations = self.start_residual(cM, cK, target, forcing, two_level, apart) > target, 0
+            active, iterations = self.start_residual(cM, cK, target, forcing, two_level, apart, start, warm,
+                                                     rebuild) > target, 0
             while active:
                 active, iterations = self.cg_iterations(cM, cK, target, forcing, max_iterations, CG_UNROLL,
                                                         two_level, apart)
         else:
+            self.start_jacobi(cM, cK, start, warm, rebuild)
             iterations, rr = 0, float("inf")
             while iterations < max_iterations and not rr <= target:
                 if self.serial_tets and self.serial_vertices:     # a small mesh: many iterations a launch
@@ -106,12 +110,24 @@ class LinearSolver:
         self.capped = iterations >= max_iterations and self.rr[None] > target
         return int(iterations)
 
+    @ti.func
+    def begin(self, cM, cK, start: ti.template(), warm, rebuild: ti.template()):
+        """The blocks built (rebuild), then the first guess d in `solution` (`solve`)."""
+        if ti.static(rebuild):
+            self.preconditioning.build_blocks(cM, cK)
+        start.first_direction(warm)
+
+    @ti.kernel
+    def start_jacobi(self, cM: float, cK: float, start: ti.template(), warm: ti.i32, rebuild: ti.template()):
+        self.begin(cM, cK, start, warm, rebuild)
+
     @ti.kernel
     def start_residual(self, cM: float, cK: float, target: float, forcing: ti.f64, two_level: ti.template(),
-                       apart: ti.template()) -> float:
-        """r <- filtered(rhs) - H d, z <- P r, rz <- r.z, for the first guess d in `solution`.
+                       apart: ti.template(), start: ti.template(), warm: ti.i32, rebuild: ti.template()) -> float:
+        """`begin`, then r <- filtered(rhs) - H d, z <- P r, rz <- r.z, for the first guess d.
         Returns the weighted residual sum_i w_b(i) |r_i|^2 (each body its own PCG: the largest
         body's, and those above the target iterate)."""
+        self.begin(cM, cK, start, warm, rebuild)
         if ti.static(apart):
             self.start_bodies()
         self.elasticity.stiffness_pass(self.solution)         # K d, into the corners

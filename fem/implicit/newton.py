@@ -20,7 +20,7 @@ its own last step (`remember_change`). Backward Euler's first iterate is v = 0 (
 iteration is the classical one-solve (stiffness-warping) step; BDF2's first iterate is the guess itself, so
 its rotations are those of a position off by O(dt^3), not O(dt^2): that keeps its one-solve step second order
 (docs/method.md). `one_solve` stops after the first iteration, without line search. Either starts its first
-solve from the guess (`start_direction`).
+solve from the guess (`first_direction`).
 
 Fields (n vertices, bodies of the capacity):
     velocity (n, 3)             v of the accepted iterate, m/s
@@ -125,11 +125,11 @@ class Newton:
         cap = settings.max_newton * (CONTACT_NEWTON if self.effects.has_contact else 1)
         while out.rho > 1.0 and out.newton_iters < cap:
             target = max(1.0, forcing * out.rho)
-            if self.effects.has_contact and out.newton_iters > 0:   # the blocks of the pairs touching now: the
-                # step's start's made PCG's operator 40 times worse conditioned once pairs came or went (two_boxes)
-                self.linear.preconditioning.build_preconditioner(cM, cK)
+            # with contact, the blocks of the pairs touching now: the step's start's made PCG's operator 40 times
+            # worse conditioned once pairs came or went (two_boxes)
+            rebuild = self.effects.has_contact and out.newton_iters > 0
             out.solver_iters += self.direction(cM, cK, target, warm and out.newton_iters == 0, scale, settings,
-                                               preconditioner, forcing)
+                                               preconditioner, forcing, rebuild)
             out.newton_iters, out.capped = out.newton_iters + 1, out.capped + int(self.linear.capped)
             if bend:
                 self.bend.prepare(p.x0, self.velocity, self.linear.solution, h)
@@ -175,12 +175,12 @@ class Newton:
             self.try_step(h, 0)
         return out
 
-    def direction(self, cM, cK, target, warm, scale, settings, preconditioner, forcing=0.0):
+    def direction(self, cM, cK, target, warm, scale, settings, preconditioner, forcing=0.0, rebuild=False):
         """d <- the solution of H d = -grad E to the weighted residual `target` (forcing: inexact
-        Newton's, LinearSolver.solve), from the extrapolated guess (warm) or 0; returns the linear
-        solver's iterations."""
-        self.start_direction(int(warm))
-        return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner, forcing)
+        Newton's, LinearSolver.solve), from the extrapolated guess (warm) or 0, the preconditioner's
+        blocks built first (rebuild); returns the linear solver's iterations."""
+        return self.linear.solve(cM, cK, target, settings.max_iterations, preconditioner, self, int(warm),
+                                 rebuild, forcing)
 
     def rotate(self, settings, frozen=False):
         """The rotations at the trial iterate (unless frozen); returns their ms."""
@@ -297,9 +297,9 @@ class Newton:
     def store_change(self, b, total, data: ti.template()):
         self.body_change[b], self.body_momentum[b] = total[0], total[1]
 
-    @ti.kernel
-    def start_direction(self, warm: ti.i32):
-        """d <- the guess less the iterate (filtered), or 0."""
+    @ti.func
+    def first_direction(self, warm):
+        """The linear solve's first guess: d <- the guess less the iterate (filtered), or 0."""
         ti.loop_config(serialize=self.serial_vertices)
         for i in range(self.model.vertex_count[None]):
             d = ti.Vector.zero(float, 3)

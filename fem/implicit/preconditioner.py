@@ -100,7 +100,12 @@ class Preconditioner:
 
     @ti.kernel
     def build_preconditioner(self, cM: float, cK: float):
-        """block_inverse <- inverse of the 3x3 diagonal blocks of H = cM M + cK K(R).
+        """block_inverse <- inverse of the 3x3 diagonal blocks of H = cM M + cK K(R)."""
+        self.build_blocks(cM, cK)
+
+    @ti.func
+    def build_blocks(self, cM, cK):
+        """`build_preconditioner`'s pass, for a kernel that starts a solve (LinearSolver.start_residual).
         A loop over vertices with the work of a loop over tets (every corner): threaded like one."""
         ti.loop_config(serialize=self.serial_tets)
         for i in range(self.model.vertex_count[None]):
